@@ -1,0 +1,20 @@
+# The two commands a new machine needs: `make demo` and `make test`. Both install what is missing.
+SHELL := /bin/bash
+export ARUCOTAG_BUILD ?= $(CURDIR)/build
+
+.PHONY: deps build test demo bench clean
+
+deps:
+	bash scripts/install_deps.sh
+
+build: deps
+	bash scripts/build.sh
+
+test: build
+	bash scripts/run_tests.sh
+
+demo: build
+	bash scripts/demo.sh
+
+clean:
+	rm -rf $(ARUCOTAG_BUILD)

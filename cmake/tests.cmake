@@ -1,0 +1,10 @@
+# Unit tests of the ROS-free core: gtest, no ROS master. They link the core and the renderer only.
+set(ARUCOTAG_TEST_DATA "${CMAKE_CURRENT_SOURCE_DIR}/test/data")
+
+catkin_add_gtest(test_core
+  test/core/test_real_photos.cpp
+)
+target_link_libraries(test_core arucotag_sim arucotag_core ${GTEST_MAIN_LIBRARIES})
+target_compile_definitions(test_core PRIVATE
+  ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"
+  ARUCOTAG_CORE_LIBRARY="$<TARGET_FILE:arucotag_core>")

@@ -1,0 +1,84 @@
+#pragma once
+
+#include <array>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+#include <opencv2/core.hpp>
+
+namespace arucotag {
+
+/// Every error the core reports: bad input, bad configuration. The core never logs and never exits.
+class Error : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+/// Which measurement produced a tag's final pose.
+enum class PoseSource {
+  kNone = 0,        ///< no pose: ids and corners only
+  kPnp = 1,         ///< perspective-n-point on the four corners
+  kPointCloud = 2,  ///< organized point cloud only
+  kFused = 3,       ///< PnP solution chosen and checked with the point cloud's depth
+};
+
+/// Lower-case name of a pose source ("none", "pnp", "point_cloud", "fused").
+const char* PoseSourceName(PoseSource source);
+
+/// Both solutions of the planar PnP problem (IPPE always yields two for a square).
+struct PnpResult {
+  bool valid = false;
+  std::array<cv::Vec3d, 2> rvec{};  ///< marker -> camera rotation (Rodrigues), best first
+  std::array<cv::Vec3d, 2> tvec{};  ///< marker centre in the camera optical frame (m), best first
+  std::array<double, 2> rms{{std::numeric_limits<double>::quiet_NaN(),
+                             std::numeric_limits<double>::quiet_NaN()}};  ///< RMS reprojection error (px)
+  int solutions = 0;  ///< how many of the two slots are filled
+  /// rms[0] / rms[1] in [0, 1]: near 0 the best solution is clearly right, near 1 the two are
+  /// indistinguishable from the corners alone (a possible pose flip). NaN with a single solution.
+  double ambiguity = std::numeric_limits<double>::quiet_NaN();
+};
+
+/// What the organized point cloud says about a tag.
+struct CloudResult {
+  bool valid = false;
+  int points = 0;          ///< finite points used (inliers of the robust fit)
+  cv::Vec3d centre{};      ///< robust estimate of the tag centre, optical frame (m)
+  bool has_normal = false;  ///< a plane could be fitted
+  cv::Vec3d normal{};       ///< unit normal of the tag face, pointing towards the camera
+  bool has_rotation = false;  ///< in-plane orientation recovered too
+  cv::Matx33d rotation = cv::Matx33d::eye();  ///< marker -> camera rotation from the cloud
+  double plane_rms = std::numeric_limits<double>::quiet_NaN();  ///< RMS distance of inliers to the plane (m)
+};
+
+/// One detected marker. Pixel coordinates have their origin at the top-left pixel's centre (OpenCV).
+/// Poses are in the camera optical frame: x right, y down, z forward. The marker frame follows
+/// cv::aruco: origin at the marker centre, x to the marker's right, y up, z out of the printed face.
+struct ArucoTag {
+  int id = -1;
+  /// Corners as cv::aruco returns them: top-left, top-right, bottom-right, bottom-left in the
+  /// marker's own frame (so rotated markers have rotated corner lists), px.
+  std::array<cv::Point2f, 4> corners{};
+  double side_length = 0.15;  ///< side of the black square used for the pose (m)
+
+  PoseSource pose_source = PoseSource::kNone;  ///< which measurement the pose below comes from
+  cv::Vec3d rvec{};  ///< marker -> camera rotation (Rodrigues vector)
+  cv::Vec3d tvec{};  ///< marker centre in the camera optical frame (m)
+  double distance = std::numeric_limits<double>::quiet_NaN();  ///< |tvec| (m)
+  double yaw = std::numeric_limits<double>::quiet_NaN();  ///< atan2(x, z) (rad), positive = tag right of the axis
+  double reprojection_error = std::numeric_limits<double>::quiet_NaN();  ///< RMS of the chosen PnP solution (px)
+  /// |PnP range - cloud range| (m) when both are known: how far the two measurements agree.
+  double depth_disagreement = std::numeric_limits<double>::quiet_NaN();
+
+  PnpResult pnp;      ///< filled by EstimatePoseFromPNP
+  CloudResult cloud;  ///< filled by EstimatePoseFromPointCloud
+
+  bool HasPose() const { return pose_source != PoseSource::kNone; }
+};
+
+/// Projected centre of the tag: the intersection of the quadrilateral's diagonals, which is where
+/// the square's true centre lands under perspective (the corner mean is not). Falls back to the
+/// corner mean when the diagonals are parallel or cross outside the quadrilateral (degenerate quad).
+cv::Point2f FindTagCenter(const ArucoTag& tag);
+
+}  // namespace arucotag

@@ -1,0 +1,8 @@
+#pragma once
+
+// The whole ROS-free core: detection, preprocessing, pose, drawing.
+#include <arucotag/aruco_tag.hpp>
+#include <arucotag/detector.hpp>
+#include <arucotag/draw.hpp>
+#include <arucotag/pose.hpp>
+#include <arucotag/preprocess.hpp>

@@ -1,0 +1,106 @@
+// ROS-free synthetic scene renderer for tests, bag generation and benchmarks.
+// Renders ArUco markers with exact (supersampled, ray-cast) geometry so that a
+// detector's corners can be compared against ProjectCorners() to sub-pixel level.
+#pragma once
+
+#include <array>
+#include <vector>
+
+#include <opencv2/aruco.hpp>
+#include <opencv2/core.hpp>
+
+namespace arucotag::sim {
+
+// Pinhole camera with optional OpenCV distortion (k1 k2 p1 p2 [k3 ...], any
+// count cv::projectPoints accepts; empty = none). Pixel centres are at integer
+// coordinates (OpenCV convention).
+struct Camera {
+  cv::Matx33d K;
+  std::vector<double> dist;
+  cv::Size size;
+};
+
+// Takes the image size and horizontal field of view in degrees; returns a
+// square-pixel camera with the principal point at the image centre
+// ((w-1)/2, (h-1)/2) and no distortion.
+Camera MakeCamera(cv::Size size, double hfov_deg);
+
+// A square marker placed in the camera optical frame (x right, y down, z forward).
+// Marker frame = OpenCV aruco convention: origin at the marker centre, x to the
+// marker's right, y up, z out of the printed face (towards a viewer).
+// Corners in marker frame: TL(-s/2, s/2, 0), TR(s/2, s/2, 0), BR(s/2, -s/2, 0),
+// BL(-s/2, -s/2, 0), s = side = the black square's side in metres.
+struct Marker {
+  int id = 0;
+  double side = 0.15;
+  cv::Vec3d rvec;  // marker->camera rotation, like cv::solvePnP output
+  cv::Vec3d tvec;  // marker centre in the camera frame, metres
+};
+
+struct RenderOptions {
+  int dictionary = cv::aruco::DICT_4X4_50;  // predefined dictionary enum
+  double quiet_zone = 1.0;         // white margin around the black square, in marker cells
+  int supersample = 8;             // samples per pixel per axis inside marker bounding boxes
+  double background_depth = 20.0;  // m, fronto-parallel wall behind everything (depth/cloud)
+  bool textured_background = true; // clutter (blobs/lines/gradients) vs plain grey, seeded
+  unsigned seed = 1;
+  double brightness = 1.0, contrast = 1.0;  // out = ((v - 128) * contrast + 128) * brightness
+  double blur_sigma = 0.0;             // Gaussian blur sigma, pixels
+  double motion_blur_px = 0.0;         // linear motion-blur length, pixels (centred, no shift)
+  double motion_blur_angle_deg = 0.0;  // direction of motion blur, 0 = along +x (image right)
+  double noise_sigma = 0.0;            // additive Gaussian pixel noise, grey levels
+  bool colour = true;                  // CV_8UC3 BGR output; false -> CV_8UC1
+  double black_level = 25.0, white_level = 230.0;  // printed ink / paper grey, pre-lighting
+};
+
+// Takes a camera, markers (any pose; behind-camera or out-of-view ones are
+// fine), and options; returns the rendered CV_8UC3 (or CV_8UC1) image of
+// cam.size. Markers occlude each other by depth and are hidden behind the wall.
+// The back of a marker renders as plain paper. If depth is non-null it receives
+// a CV_32F image: metres along optical z of the first surface hit by each pixel
+// centre's ray (marker incl. quiet zone, else opt.background_depth).
+// Deterministic: same inputs give identical bytes.
+cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
+                    const RenderOptions& opt, cv::Mat* depth = nullptr);
+
+// Takes a camera and marker; returns the true image corners TL TR BR BL via
+// cv::projectPoints (distortion honoured). Assumes the marker is in front.
+std::array<cv::Point2f, 4> ProjectCorners(const Camera& cam, const Marker& m);
+
+// Takes a camera and marker; returns the image of the marker centre.
+cv::Point2f ProjectCentre(const Camera& cam, const Marker& m);
+
+// Returns the four 3D corners TL TR BR BL of a marker of the given side, in
+// the marker frame (same order/convention as cv::aruco).
+std::array<cv::Point3d, 4> MarkerCorners3d(double side);
+
+struct CloudOptions {
+  double nan_fraction = 0.0;       // fraction of pixels turned into holes
+  double depth_noise_sigma = 0.0;  // relative, e.g. 0.005 = 0.5% of depth, along the ray
+  unsigned seed = 2;
+  bool hole_blobs = true;          // holes mostly as clustered blobs (stereo-like), rest salt
+};
+
+// Takes a camera and a CV_32F depth image of cam.size (e.g. from RenderScene);
+// returns a CV_32FC3 organized cloud of the same size: each pixel is the 3D
+// point (x, y, z) in the optical frame on the pixel centre's undistorted ray
+// with z = depth (noise moves it along the ray); holes are NaN in all three.
+// Non-finite or non-positive depths also become holes. Deterministic per seed.
+cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt);
+
+// Takes an id, side (m), centre position in the optical frame (m) and Euler
+// angles (deg) applied in the marker frame as R = R_facing * Ry(yaw) *
+// Rx(pitch) * Rz(roll); returns a marker whose printed face looks straight at
+// the camera's image plane (upright, x right, y up in the image) when all
+// angles are 0. roll is the in-plane rotation; yaw/pitch tilt it.
+Marker FacingCamera(int id, double side, cv::Vec3d position, double yaw_deg = 0.0,
+                    double pitch_deg = 0.0, double roll_deg = 0.0);
+
+// Takes an RNG, camera, id, side, range interval (m, along z) and a maximum
+// tilt (deg); returns a randomly posed marker (random in-plane rotation, tilt
+// up to max_tilt_deg) whose projected quad plus a 1-cell margin lies inside
+// the image. Falls back to a centred frontal marker after many failed tries.
+Marker RandomMarker(cv::RNG& rng, const Camera& cam, int id, double side, double min_range,
+                    double max_range, double max_tilt_deg);
+
+}  // namespace arucotag::sim

@@ -1,0 +1,175 @@
+#include <arucotag/detector.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag {
+
+namespace {
+
+// Index = cv::aruco::PREDEFINED_DICTIONARY_NAME value.
+const std::vector<std::string> kDictionaryNames = {
+    "DICT_4X4_50",         "DICT_4X4_100",        "DICT_4X4_250",        "DICT_4X4_1000",
+    "DICT_5X5_50",         "DICT_5X5_100",        "DICT_5X5_250",        "DICT_5X5_1000",
+    "DICT_6X6_50",         "DICT_6X6_100",        "DICT_6X6_250",        "DICT_6X6_1000",
+    "DICT_7X7_50",         "DICT_7X7_100",        "DICT_7X7_250",        "DICT_7X7_1000",
+    "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_16h5",  "DICT_APRILTAG_25h9",  "DICT_APRILTAG_36h10",
+    "DICT_APRILTAG_36h11",
+};
+
+void Require(bool ok, const char* field, const std::string& why) {
+  if (!ok) {
+    throw Error(std::string("detector parameter '") + field + "' " + why);
+  }
+}
+
+bool Finite(double v) { return std::isfinite(v); }
+
+void Validate(const DetectorConfig& c) {
+  Require(c.adaptive_thresh_win_size_min >= 3, "adaptive_thresh_win_size_min", "must be >= 3");
+  Require(c.adaptive_thresh_win_size_max >= c.adaptive_thresh_win_size_min, "adaptive_thresh_win_size_max",
+          "must be >= adaptive_thresh_win_size_min");
+  Require(c.adaptive_thresh_win_size_step > 0, "adaptive_thresh_win_size_step", "must be > 0");
+  Require(Finite(c.adaptive_thresh_constant), "adaptive_thresh_constant", "must be finite");
+  Require(Finite(c.min_marker_perimeter_rate) && c.min_marker_perimeter_rate > 0.0, "min_marker_perimeter_rate",
+          "must be > 0");
+  Require(Finite(c.max_marker_perimeter_rate) && c.max_marker_perimeter_rate > c.min_marker_perimeter_rate,
+          "max_marker_perimeter_rate", "must be > min_marker_perimeter_rate");
+  Require(Finite(c.polygonal_approx_accuracy_rate) && c.polygonal_approx_accuracy_rate > 0.0,
+          "polygonal_approx_accuracy_rate", "must be > 0");
+  Require(Finite(c.min_corner_distance_rate) && c.min_corner_distance_rate >= 0.0, "min_corner_distance_rate",
+          "must be >= 0");
+  Require(c.min_distance_to_border >= 0, "min_distance_to_border", "must be >= 0");
+  Require(Finite(c.min_marker_distance_rate) && c.min_marker_distance_rate >= 0.0, "min_marker_distance_rate",
+          "must be >= 0");
+  Require(c.marker_border_bits >= 1, "marker_border_bits", "must be >= 1");
+  Require(c.perspective_remove_pixel_per_cell >= 1, "perspective_remove_pixel_per_cell", "must be >= 1");
+  Require(Finite(c.perspective_remove_ignored_margin_per_cell) && c.perspective_remove_ignored_margin_per_cell >= 0.0 &&
+              c.perspective_remove_ignored_margin_per_cell < 0.5,
+          "perspective_remove_ignored_margin_per_cell", "must be in [0, 0.5)");
+  Require(Finite(c.max_erroneous_bits_in_border_rate) && c.max_erroneous_bits_in_border_rate >= 0.0 &&
+              c.max_erroneous_bits_in_border_rate <= 1.0,
+          "max_erroneous_bits_in_border_rate", "must be in [0, 1]");
+  Require(Finite(c.min_otsu_std_dev) && c.min_otsu_std_dev >= 0.0, "min_otsu_std_dev", "must be >= 0");
+  Require(Finite(c.error_correction_rate) && c.error_correction_rate >= 0.0 && c.error_correction_rate <= 1.0,
+          "error_correction_rate", "must be in [0, 1]");
+  Require(c.corner_refinement_win_size >= 1, "corner_refinement_win_size", "must be >= 1");
+  Require(c.corner_refinement_max_iterations >= 1, "corner_refinement_max_iterations", "must be >= 1");
+  Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
+          "corner_refinement_min_accuracy", "must be > 0");
+  Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
+  for (const auto& [id, side] : c.side_lengths) {
+    Require(Finite(side) && side > 0.0, "side_lengths",
+            "must be > 0 m (id " + std::to_string(id) + " has " + std::to_string(side) + ")");
+  }
+}
+
+int ToOpenCv(CornerRefinement refinement) {
+  switch (refinement) {
+    case CornerRefinement::kSubpix:
+      return cv::aruco::CORNER_REFINE_SUBPIX;
+    case CornerRefinement::kContour:
+      return cv::aruco::CORNER_REFINE_CONTOUR;
+    case CornerRefinement::kApriltag:
+      return cv::aruco::CORNER_REFINE_APRILTAG;
+    case CornerRefinement::kNone:
+      break;
+  }
+  return cv::aruco::CORNER_REFINE_NONE;
+}
+
+}  // namespace
+
+CornerRefinement CornerRefinementFromName(const std::string& name) {
+  if (name == "none") return CornerRefinement::kNone;
+  if (name == "subpix") return CornerRefinement::kSubpix;
+  if (name == "contour") return CornerRefinement::kContour;
+  if (name == "apriltag") return CornerRefinement::kApriltag;
+  throw Error("unknown corner refinement '" + name + "' (valid: none, subpix, contour, apriltag)");
+}
+
+const std::vector<std::string>& DictionaryNames() { return kDictionaryNames; }
+
+int DictionaryFromName(const std::string& name) {
+  const auto it = std::find(kDictionaryNames.begin(), kDictionaryNames.end(), name);
+  if (it == kDictionaryNames.end()) {
+    std::ostringstream msg;
+    msg << "unknown dictionary '" << name << "'; valid names:";
+    for (const auto& valid : kDictionaryNames) msg << ' ' << valid;
+    throw Error(msg.str());
+  }
+  return static_cast<int>(it - kDictionaryNames.begin());
+}
+
+Detector::Detector(const DetectorConfig& config) : config_(config) {
+  Validate(config_);
+  dictionary_ = cv::aruco::getPredefinedDictionary(DictionaryFromName(config_.dictionary));
+  parameters_ = cv::aruco::DetectorParameters::create();
+  auto& p = *parameters_;
+  p.adaptiveThreshWinSizeMin = config_.adaptive_thresh_win_size_min;
+  p.adaptiveThreshWinSizeMax = config_.adaptive_thresh_win_size_max;
+  p.adaptiveThreshWinSizeStep = config_.adaptive_thresh_win_size_step;
+  p.adaptiveThreshConstant = config_.adaptive_thresh_constant;
+  p.minMarkerPerimeterRate = config_.min_marker_perimeter_rate;
+  p.maxMarkerPerimeterRate = config_.max_marker_perimeter_rate;
+  p.polygonalApproxAccuracyRate = config_.polygonal_approx_accuracy_rate;
+  p.minCornerDistanceRate = config_.min_corner_distance_rate;
+  p.minDistanceToBorder = config_.min_distance_to_border;
+  p.minMarkerDistanceRate = config_.min_marker_distance_rate;
+  p.cornerRefinementMethod = ToOpenCv(config_.corner_refinement);
+  p.cornerRefinementWinSize = config_.corner_refinement_win_size;
+  p.cornerRefinementMaxIterations = config_.corner_refinement_max_iterations;
+  p.cornerRefinementMinAccuracy = config_.corner_refinement_min_accuracy;
+  p.markerBorderBits = config_.marker_border_bits;
+  p.perspectiveRemovePixelPerCell = config_.perspective_remove_pixel_per_cell;
+  p.perspectiveRemoveIgnoredMarginPerCell = config_.perspective_remove_ignored_margin_per_cell;
+  p.maxErroneousBitsInBorderRate = config_.max_erroneous_bits_in_border_rate;
+  p.minOtsuStdDev = config_.min_otsu_std_dev;
+  p.errorCorrectionRate = config_.error_correction_rate;
+  p.detectInvertedMarker = config_.detect_inverted_marker;
+}
+
+double Detector::SideLength(int id) const {
+  const auto it = config_.side_lengths.find(id);
+  return it == config_.side_lengths.end() ? config_.default_side_length : it->second;
+}
+
+bool Detector::Accepts(int id) const {
+  const auto contains = [id](const std::vector<int>& ids) { return std::find(ids.begin(), ids.end(), id) != ids.end(); };
+  if (!config_.allowed_ids.empty() && !contains(config_.allowed_ids)) return false;
+  return !contains(config_.ignored_ids);
+}
+
+std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
+  if (frame.empty()) {
+    throw Error("Detect: empty image");
+  }
+  if (frame.depth() != CV_8U || (frame.channels() != 1 && frame.channels() != 3)) {
+    throw Error("Detect: want an 8-bit grey or BGR image (got " + std::to_string(frame.channels()) +
+                " channel(s) of OpenCV depth " + std::to_string(frame.depth()) + "); run PreprocessFrame first");
+  }
+  cv::Mat grey = frame;
+  if (frame.channels() == 3) {
+    cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
+  }
+  std::vector<std::vector<cv::Point2f>> corners;
+  std::vector<int> ids;
+  cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, detector.parameters());
+
+  std::vector<ArucoTag> tags;
+  tags.reserve(ids.size());
+  for (size_t i = 0; i < ids.size(); ++i) {
+    if (!detector.Accepts(ids[i])) continue;
+    ArucoTag tag;
+    tag.id = ids[i];
+    std::copy_n(corners[i].begin(), 4, tag.corners.begin());
+    tag.side_length = detector.SideLength(tag.id);
+    tags.push_back(tag);
+  }
+  return tags;
+}
+
+}  // namespace arucotag

@@ -1,0 +1,298 @@
+#include <arucotag/pose.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag {
+
+CameraModel CameraModel::FromIntrinsics(const cv::Matx33d& K, const std::vector<double>& distortion) {
+  CameraModel camera;
+  camera.K = K;
+  camera.distortion = distortion;
+  // ROS drivers publish all-zero D for rectified cameras; an empty vector skips OpenCV's undistortion.
+  if (std::all_of(distortion.begin(), distortion.end(), [](double d) { return d == 0.0; })) {
+    camera.distortion.clear();
+  }
+  return camera;
+}
+
+CameraModel CameraModel::FromProjection(const cv::Matx34d& P) {
+  CameraModel camera;
+  camera.K = P.get_minor<3, 3>(0, 0);
+  return camera;
+}
+
+void CameraModel::Validate() const {
+  const double fx = K(0, 0), fy = K(1, 1), cx = K(0, 2), cy = K(1, 2);
+  if (!(std::isfinite(fx) && std::isfinite(fy) && fx > 0.0 && fy > 0.0)) {
+    throw Error("camera intrinsics invalid: fx and fy must be positive (got fx=" + std::to_string(fx) +
+                ", fy=" + std::to_string(fy) + "); is camera_info calibrated?");
+  }
+  if (!(std::isfinite(cx) && std::isfinite(cy))) {
+    throw Error("camera intrinsics invalid: cx and cy must be finite");
+  }
+  const size_t n = distortion.size();
+  if (n != 0 && n != 4 && n != 5 && n != 8 && n != 12 && n != 14) {
+    throw Error("camera distortion has " + std::to_string(n) + " coefficients; OpenCV accepts 4, 5, 8, 12 or 14");
+  }
+  for (double d : distortion) {
+    if (!std::isfinite(d)) throw Error("camera distortion coefficient is not finite");
+  }
+}
+
+bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
+  camera.Validate();
+  const double s = tag.side_length;
+  if (!(std::isfinite(s) && s > 0.0)) {
+    throw Error("EstimatePoseFromPNP: tag " + std::to_string(tag.id) + " has side length " + std::to_string(s) +
+                " m; it must be > 0");
+  }
+  // SOLVEPNP_IPPE_SQUARE requires exactly this order and centring, which matches cv::aruco's corners.
+  const double h = s / 2.0;
+  const std::vector<cv::Point3d> object{{-h, h, 0.0}, {h, h, 0.0}, {h, -h, 0.0}, {-h, -h, 0.0}};
+  std::vector<cv::Point2d> image;
+  for (const auto& c : tag.corners) {
+    if (!std::isfinite(c.x) || !std::isfinite(c.y)) return false;
+    image.emplace_back(c);
+  }
+  std::vector<cv::Mat> rvecs, tvecs;
+  cv::Mat errors;
+  const cv::Mat K(camera.K);
+  const cv::Mat dist = camera.distortion.empty() ? cv::Mat() : cv::Mat(camera.distortion);
+  int n = 0;
+  try {
+    n = cv::solvePnPGeneric(object, image, K, dist, rvecs, tvecs, false, cv::SOLVEPNP_IPPE_SQUARE, cv::noArray(),
+                            cv::noArray(), errors);
+  } catch (const cv::Exception& e) {
+    throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
+  }
+  PnpResult result;
+  for (int i = 0; i < n && result.solutions < 2; ++i) {
+    const cv::Vec3d t(tvecs[i].ptr<double>());
+    if (!(t[2] > 0.0)) continue;  // behind the camera: not a physical solution
+    result.rvec[result.solutions] = cv::Vec3d(rvecs[i].ptr<double>());
+    result.tvec[result.solutions] = t;
+    result.rms[result.solutions] = errors.at<double>(i);
+    ++result.solutions;
+  }
+  if (result.solutions == 0) return false;
+  if (result.solutions == 2 && result.rms[1] < result.rms[0]) {
+    std::swap(result.rvec[0], result.rvec[1]);
+    std::swap(result.tvec[0], result.tvec[1]);
+    std::swap(result.rms[0], result.rms[1]);
+  }
+  if (result.solutions == 2) {
+    result.ambiguity = result.rms[1] > 0.0 ? result.rms[0] / result.rms[1] : 1.0;
+  }
+  result.valid = true;
+  tag.pnp = result;
+  ResolvePose(tag, tag.cloud.valid ? PoseSource::kFused : PoseSource::kPnp);
+  return true;
+}
+
+namespace {
+
+struct Sample {
+  double a, b;    // marker-plane coordinates, in side lengths, origin at the centre
+  cv::Vec3d xyz;  // cloud point
+};
+
+// Least-squares fit of xyz = c + a * ex + b * ey: exact for a plane seen through a pinhole, because
+// (a, b) come from the image-to-marker homography. Returns false when the system is singular.
+bool FitAffine(const std::vector<Sample>& samples, const std::vector<char>& use, cv::Vec3d& c, cv::Vec3d& ex,
+               cv::Vec3d& ey) {
+  cv::Matx33d ata = cv::Matx33d::zeros();
+  cv::Matx33d atb = cv::Matx33d::zeros();  // column j = right-hand side for coordinate j
+  for (size_t i = 0; i < samples.size(); ++i) {
+    if (!use[i]) continue;
+    const cv::Vec3d row(1.0, samples[i].a, samples[i].b);
+    ata += row * row.t();
+    atb += row * samples[i].xyz.t();
+  }
+  cv::Matx33d sol;
+  if (!cv::solve(ata, atb, sol, cv::DECOMP_CHOLESKY)) return false;
+  c = cv::Vec3d(sol(0, 0), sol(0, 1), sol(0, 2));
+  ex = cv::Vec3d(sol(1, 0), sol(1, 1), sol(1, 2));
+  ey = cv::Vec3d(sol(2, 0), sol(2, 1), sol(2, 2));
+  return std::isfinite(cv::norm(c)) && std::isfinite(cv::norm(ex)) && std::isfinite(cv::norm(ey));
+}
+
+double Median(std::vector<double> values) {
+  const auto mid = values.begin() + values.size() / 2;
+  std::nth_element(values.begin(), mid, values.end());
+  return *mid;
+}
+
+// A rotation whose z axis points from the tag back to the camera: the best guess of orientation when
+// nothing measured it.
+cv::Matx33d FacingCamera(const cv::Vec3d& position) {
+  const cv::Vec3d z = -cv::normalize(position);
+  cv::Vec3d x = cv::Vec3d(0, 1, 0).cross(z);  // camera "down" x towards-camera = marker right
+  if (cv::norm(x) < 1e-9) x = cv::Vec3d(1, 0, 0);
+  x = cv::normalize(x);
+  const cv::Vec3d y = z.cross(x);
+  return cv::Matx33d(x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2]);
+}
+
+}  // namespace
+
+bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
+                                const CloudPoseOptions& options) {
+  if (cloud.type() != CV_32FC3) {
+    throw Error("EstimatePoseFromPointCloud: cloud must be an organized CV_32FC3 (XYZ) matrix");
+  }
+  if (cloud.size() != image_size) {
+    throw Error("EstimatePoseFromPointCloud: cloud is " + std::to_string(cloud.cols) + "x" +
+                std::to_string(cloud.rows) + " but the image is " + std::to_string(image_size.width) + "x" +
+                std::to_string(image_size.height) + "; an organized cloud must match the image pixel for pixel");
+  }
+  tag.cloud = CloudResult();
+
+  std::vector<cv::Point2f> image_quad(tag.corners.begin(), tag.corners.end());
+  const std::vector<cv::Point2f> marker_quad{{-0.5f, 0.5f}, {0.5f, 0.5f}, {0.5f, -0.5f}, {-0.5f, -0.5f}};
+  const cv::Matx33d to_marker = cv::getPerspectiveTransform(image_quad, marker_quad);
+  const cv::Rect box = cv::boundingRect(image_quad) & cv::Rect(cv::Point(0, 0), image_size);
+  const double limit = 0.5 * (1.0 - options.shrink);
+  // Stride so big (close) tags cost about max_samples points; accuracy is limited by noise, not count.
+  const int stride = std::max(1, static_cast<int>(std::ceil(std::sqrt(
+                                     static_cast<double>(box.area()) / std::max(1, options.max_samples)))));
+
+  std::vector<Sample> samples;
+  for (int v = box.y; v < box.y + box.height; v += stride) {
+    const auto* row = cloud.ptr<cv::Vec3f>(v);
+    for (int u = box.x; u < box.x + box.width; u += stride) {
+      const cv::Vec3d m = to_marker * cv::Vec3d(u, v, 1.0);
+      if (!(std::abs(m[2]) > 1e-12)) continue;
+      const double a = m[0] / m[2], b = m[1] / m[2];
+      if (std::abs(a) > limit || std::abs(b) > limit) continue;
+      const cv::Vec3f& p = row[u];
+      if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]) || !(p[2] > 0.0f)) continue;
+      samples.push_back({a, b, cv::Vec3d(p[0], p[1], p[2])});
+    }
+  }
+  if (static_cast<int>(samples.size()) < options.min_points) {
+    return false;
+  }
+
+  CloudResult& result = tag.cloud;
+  std::vector<char> use(samples.size(), 1);
+  cv::Vec3d c, ex, ey;
+  bool fitted = static_cast<int>(samples.size()) >= options.min_plane_points;
+  // Fit, drop points far from the fit (flying pixels, background through holes), refit.
+  for (int round = 0; fitted && round < 3; ++round) {
+    if (!FitAffine(samples, use, c, ex, ey)) {
+      fitted = false;
+      break;
+    }
+    std::vector<double> residuals(samples.size());
+    for (size_t i = 0; i < samples.size(); ++i) {
+      residuals[i] = cv::norm(samples[i].xyz - (c + samples[i].a * ex + samples[i].b * ey));
+    }
+    const double mad = Median(residuals);
+    const double threshold = std::max(3.0 * 1.4826 * mad, 1e-4);
+    int kept = 0;
+    for (size_t i = 0; i < samples.size(); ++i) {
+      use[i] = residuals[i] <= threshold;
+      kept += use[i];
+    }
+    if (kept < options.min_plane_points) fitted = false;
+  }
+
+  const cv::Vec3d z = fitted ? ex.cross(ey) : cv::Vec3d();
+  if (fitted && cv::norm(z) > 0.0 && cv::norm(ex) > 0.0) {
+    result.points = static_cast<int>(std::count(use.begin(), use.end(), 1));
+    result.centre = c;
+    cv::Vec3d normal = cv::normalize(z);
+    if (normal.dot(c) > 0.0) normal = -normal;  // face the camera whatever the corner order
+    result.normal = normal;
+    result.has_normal = true;
+    const cv::Vec3d x = cv::normalize(ex - ex.dot(normal) * normal);
+    const cv::Vec3d y = normal.cross(x);
+    result.rotation = cv::Matx33d(x[0], y[0], normal[0], x[1], y[1], normal[1], x[2], y[2], normal[2]);
+    result.has_rotation = true;
+    double sum_sq = 0.0;
+    for (size_t i = 0; i < samples.size(); ++i) {
+      if (use[i]) sum_sq += std::pow((samples[i].xyz - c).dot(normal), 2);
+    }
+    result.plane_rms = std::sqrt(sum_sq / result.points);
+  } else {
+    // Too few points for a plane: the per-axis median is still robust to flying pixels.
+    std::vector<double> xs, ys, zs;
+    for (const auto& s : samples) {
+      xs.push_back(s.xyz[0]);
+      ys.push_back(s.xyz[1]);
+      zs.push_back(s.xyz[2]);
+    }
+    result.points = static_cast<int>(samples.size());
+    result.centre = cv::Vec3d(Median(xs), Median(ys), Median(zs));
+  }
+  result.valid = true;
+  ResolvePose(tag, tag.pnp.valid ? PoseSource::kFused : PoseSource::kPointCloud);
+  return true;
+}
+
+PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
+  const bool pnp = tag.pnp.valid && tag.pnp.solutions > 0;
+  const bool cloud = tag.cloud.valid;
+  PoseSource source = wanted;
+  if (source == PoseSource::kFused && !(pnp && cloud)) source = pnp ? PoseSource::kPnp : PoseSource::kPointCloud;
+  if (source == PoseSource::kPnp && !pnp) source = PoseSource::kPointCloud;
+  if (source == PoseSource::kPointCloud && !cloud) source = pnp ? PoseSource::kPnp : PoseSource::kNone;
+
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  tag.pose_source = source;
+  tag.reprojection_error = nan;
+  tag.depth_disagreement = pnp && cloud ? std::abs(cv::norm(tag.pnp.tvec[0]) - cv::norm(tag.cloud.centre)) : nan;
+  switch (source) {
+    case PoseSource::kNone:
+      tag.rvec = tag.tvec = cv::Vec3d();
+      tag.distance = tag.yaw = nan;
+      return source;
+    case PoseSource::kPnp:
+      tag.rvec = tag.pnp.rvec[0];
+      tag.tvec = tag.pnp.tvec[0];
+      tag.reprojection_error = tag.pnp.rms[0];
+      break;
+    case PoseSource::kPointCloud: {
+      tag.tvec = tag.cloud.centre;
+      cv::Matx33d rotation;
+      if (tag.cloud.has_rotation) {
+        rotation = tag.cloud.rotation;
+      } else if (pnp) {
+        cv::Rodrigues(tag.pnp.rvec[0], rotation);
+      } else {
+        rotation = FacingCamera(tag.cloud.centre);
+      }
+      cv::Rodrigues(rotation, tag.rvec);
+      break;
+    }
+    case PoseSource::kFused: {
+      // IPPE's two solutions differ mainly by a reflection of the face normal about the line of
+      // sight; the cloud's plane says which one is real even when the corners cannot.
+      int best = 0;
+      if (tag.cloud.has_normal && tag.pnp.solutions == 2) {
+        double agreement[2];
+        for (int i = 0; i < 2; ++i) {
+          cv::Matx33d r;
+          cv::Rodrigues(tag.pnp.rvec[i], r);
+          agreement[i] = cv::Vec3d(r(0, 2), r(1, 2), r(2, 2)).dot(tag.cloud.normal);
+        }
+        best = agreement[1] > agreement[0] ? 1 : 0;
+      }
+      tag.rvec = tag.pnp.rvec[best];
+      tag.tvec = tag.pnp.tvec[best];
+      tag.reprojection_error = tag.pnp.rms[best];
+      tag.depth_disagreement = std::abs(cv::norm(tag.tvec) - cv::norm(tag.cloud.centre));
+      break;
+    }
+  }
+  tag.distance = cv::norm(tag.tvec);
+  tag.yaw = std::atan2(tag.tvec[0], tag.tvec[2]);
+  return source;
+}
+
+}  // namespace arucotag

@@ -1,0 +1,424 @@
+// Synthetic ArUco scene renderer: per-sample ray casting against marker planes,
+// so edges/corners are exact to the supersampling limit, plus seeded clutter,
+// photometric degradations, exact depth and an organized point cloud.
+#include "arucotag/sim.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag::sim {
+namespace {
+
+constexpr double kDeg = CV_PI / 180.0;
+
+bool HasDistortion(const Camera& cam) {
+  return std::any_of(cam.dist.begin(), cam.dist.end(), [](double d) { return d != 0.0; });
+}
+
+cv::Mat DistMat(const Camera& cam) {
+  return HasDistortion(cam) ? cv::Mat(cam.dist, true) : cv::Mat();
+}
+
+// Normalized (undistorted) rays for pixel positions. Without distortion the
+// inverse of K is exact; with it, rays are undistorted on the integer pixel
+// grid (-1..w, -1..h) once and bilinearly interpolated in between: the
+// distortion field's curvature over one pixel is ~1e-4 px, far below the
+// 0.01 px budget, and it avoids undistorting 64 samples per pixel.
+class RayMap {
+ public:
+  explicit RayMap(const Camera& cam) : k_inv_(cam.K.inv()), distorted_(HasDistortion(cam)) {
+    if (!distorted_) return;
+    gw_ = cam.size.width + 2;
+    gh_ = cam.size.height + 2;
+    std::vector<cv::Point2d> px;
+    px.reserve(static_cast<size_t>(gw_) * gh_);
+    for (int v = -1; v <= cam.size.height; ++v)
+      for (int u = -1; u <= cam.size.width; ++u) px.emplace_back(u, v);
+    // Fixed-point count only (no EPS) so OpenCV skips its per-iteration
+    // reprojection; 40 iterations converge far below 1e-6 px for sane lenses.
+    cv::undistortPoints(px, grid_, cam.K, DistMat(cam), cv::noArray(), cv::noArray(),
+                        cv::TermCriteria(cv::TermCriteria::COUNT, 40, 0));
+  }
+
+  // Takes a pixel position inside [-1, w] x [-1, h]; returns (x, y) with ray (x, y, 1).
+  cv::Vec2d operator()(double u, double v) const {
+    if (!distorted_) {
+      const cv::Vec3d r = k_inv_ * cv::Vec3d(u, v, 1.0);
+      return {r[0] / r[2], r[1] / r[2]};
+    }
+    const double gu = std::clamp(u + 1.0, 0.0, gw_ - 1.000001);
+    const double gv = std::clamp(v + 1.0, 0.0, gh_ - 1.000001);
+    const int iu = static_cast<int>(gu), iv = static_cast<int>(gv);
+    const double fu = gu - iu, fv = gv - iv;
+    const cv::Point2d* p = &grid_[static_cast<size_t>(iv) * gw_ + iu];
+    const cv::Point2d a = p[0] * (1 - fu) + p[1] * fu;
+    const cv::Point2d b = p[gw_] * (1 - fu) + p[gw_ + 1] * fu;
+    const cv::Point2d r = a * (1 - fv) + b * fv;
+    return {r.x, r.y};
+  }
+
+ private:
+  cv::Matx33d k_inv_;
+  bool distorted_;
+  int gw_ = 0, gh_ = 0;
+  std::vector<cv::Point2d> grid_;
+};
+
+// A marker reduced to what the per-sample inner loop needs: a homography from
+// the normalized ray (x, y, 1) to marker-plane coordinates and the bit grid.
+struct PreparedMarker {
+  cv::Vec3d h1, h2, h3;   // X = h1.d / h3.d, Y = h2.d / h3.d
+  double c = 0;           // lambda = c / h3.d (c < 0: printed face visible)
+  double half_side = 0, half_outer = 0, cell = 0;
+  cv::Mat bits;           // CV_8U, 255 = white, incl. the 1-cell black border
+  cv::Rect box;           // pixels that may see the quiet-zone quad
+};
+
+PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits,
+                       double quiet_zone) {
+  PreparedMarker p;
+  cv::Matx33d r;
+  cv::Rodrigues(m.rvec, r);
+  const cv::Vec3d r1(r(0, 0), r(1, 0), r(2, 0)), r2(r(0, 1), r(1, 1), r(2, 1)),
+      r3(r(0, 2), r(1, 2), r(2, 2));
+  p.c = r3.dot(m.tvec);
+  p.h1 = p.c * r1 - r1.dot(m.tvec) * r3;
+  p.h2 = p.c * r2 - r2.dot(m.tvec) * r3;
+  p.h3 = r3;
+  p.bits = bits;
+  p.cell = m.side / bits.cols;
+  p.half_side = m.side / 2;
+  p.half_outer = p.half_side + quiet_zone * p.cell;
+
+  // Bounding box from points along the outer quad's edges (edges bow under
+  // distortion). Fall back to the whole image when any point is behind the
+  // camera or far outside the field of view, where projection is meaningless.
+  const cv::Rect full(cv::Point(0, 0), cam.size);
+  std::vector<cv::Point3d> edge;
+  const int per_edge = HasDistortion(cam) ? 16 : 1;
+  const double h = p.half_outer;
+  const cv::Point2d quad[4] = {{-h, h}, {h, h}, {h, -h}, {-h, -h}};
+  for (int e = 0; e < 4; ++e)
+    for (int i = 0; i < per_edge; ++i) {
+      const cv::Point2d q = quad[e] + (quad[(e + 1) % 4] - quad[e]) * (double(i) / per_edge);
+      edge.emplace_back(q.x, q.y, 0.0);
+    }
+  const double max_tan = 4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
+  for (const auto& q : edge) {
+    const cv::Vec3d pc = r * cv::Vec3d(q.x, q.y, q.z) + m.tvec;
+    if (pc[2] < 1e-6 || std::hypot(pc[0], pc[1]) > max_tan * pc[2]) {
+      p.box = full;
+      return p;
+    }
+  }
+  std::vector<cv::Point2d> img;
+  cv::projectPoints(edge, m.rvec, m.tvec, cam.K, DistMat(cam), img);
+  const cv::Rect2d b = cv::boundingRect(std::vector<cv::Point2f>(img.begin(), img.end()));
+  const int x0 = static_cast<int>(std::floor(b.x)) - 2, y0 = static_cast<int>(std::floor(b.y)) - 2;
+  const int x1 = static_cast<int>(std::ceil(b.x + b.width)) + 3;
+  const int y1 = static_cast<int>(std::ceil(b.y + b.height)) + 3;
+  p.box = cv::Rect(cv::Point(x0, y0), cv::Point(x1, y1)) & full;
+  return p;
+}
+
+// Grey value and depth of the nearest surface along ray (x, y, 1) among the
+// candidate markers; returns false when only the wall is hit.
+bool CastRay(const std::vector<const PreparedMarker*>& cand, double x, double y, double wall,
+             double white, double black, double* grey, double* z) {
+  double best = wall;
+  bool hit = false;
+  for (const PreparedMarker* p : cand) {
+    const double den = p->h3[0] * x + p->h3[1] * y + p->h3[2];
+    if (den == 0.0) continue;
+    const double lam = p->c / den;  // ray parameter == optical z because d_z = 1
+    if (lam <= 0.0 || lam >= best) continue;
+    const double mx = (p->h1[0] * x + p->h1[1] * y + p->h1[2]) / den;
+    const double my = (p->h2[0] * x + p->h2[1] * y + p->h2[2]) / den;
+    if (std::abs(mx) > p->half_outer || std::abs(my) > p->half_outer) continue;
+    best = lam;
+    hit = true;
+    if (p->c >= 0.0) {  // seen from behind: blank paper
+      *grey = white;
+      continue;
+    }
+    const int col = static_cast<int>(std::floor((mx + p->half_side) / p->cell));
+    const int row = static_cast<int>(std::floor((p->half_side - my) / p->cell));
+    const bool inside = col >= 0 && row >= 0 && col < p->bits.cols && row < p->bits.rows;
+    *grey = (!inside || p->bits.at<uchar>(row, col)) ? white : black;
+  }
+  *z = best;
+  return hit;
+}
+
+// Seeded clutter: smooth gradients, soft blobs, ellipses and lines. Only
+// round/elongated shapes are drawn so that no square with a dark border and
+// a light surround is created on purpose; a detector pass then scrubs any
+// accidental look-alike, which keeps false positives out of tests.
+cv::Mat Background(cv::Size size, const RenderOptions& opt) {
+  cv::Mat bg(size, CV_8UC3, cv::Scalar::all(128));
+  if (!opt.textured_background) return bg;
+  cv::RNG rng(opt.seed * 2654435761u + 12345u);
+  auto colour = [&](int lo, int hi) {
+    return cv::Scalar(rng.uniform(lo, hi), rng.uniform(lo, hi), rng.uniform(lo, hi));
+  };
+  // Low-frequency colour field: tiny random image upsampled smoothly.
+  cv::Mat tiny(rng.uniform(3, 7), rng.uniform(3, 7), CV_8UC3);
+  rng.fill(tiny, cv::RNG::UNIFORM, cv::Scalar::all(70), cv::Scalar::all(200));
+  cv::resize(tiny, bg, size, 0, 0, cv::INTER_CUBIC);
+  const int d = std::max(size.width, size.height);
+  const int n_shapes = 25 + d / 40;
+  for (int i = 0; i < n_shapes; ++i) {
+    const cv::Point c(rng.uniform(0, size.width), rng.uniform(0, size.height));
+    switch (rng.uniform(0, 3)) {
+      case 0:
+        cv::ellipse(bg, c, cv::Size(rng.uniform(4, d / 8 + 6), rng.uniform(4, d / 8 + 6)),
+                    rng.uniform(0.0, 180.0), 0, 360, colour(40, 230), cv::FILLED, cv::LINE_AA);
+        break;
+      case 1:
+        cv::line(bg, c, c + cv::Point(rng.uniform(-d / 4, d / 4), rng.uniform(-d / 4, d / 4)),
+                 colour(30, 240), rng.uniform(1, 5), cv::LINE_AA);
+        break;
+      default:
+        cv::circle(bg, c, rng.uniform(3, d / 12 + 4), colour(40, 230), rng.uniform(1, 4),
+                   cv::LINE_AA);
+    }
+  }
+  cv::Mat grain(size, CV_8UC3);
+  rng.fill(grain, cv::RNG::NORMAL, cv::Scalar::all(0), cv::Scalar::all(6));
+  cv::GaussianBlur(bg, bg, cv::Size(), 0.8);
+  cv::add(bg, grain, bg, cv::noArray(), CV_8UC3);  // saturating, deterministic
+
+  // Safety net against accidental marker look-alikes (permissive detector).
+  auto params = cv::aruco::DetectorParameters::create();
+  params->minMarkerPerimeterRate = 0.01;
+  std::vector<std::vector<cv::Point2f>> corners, rejected;
+  std::vector<int> ids;
+  cv::Mat grey;
+  cv::cvtColor(bg, grey, cv::COLOR_BGR2GRAY);
+  cv::aruco::detectMarkers(grey, cv::aruco::getPredefinedDictionary(opt.dictionary), corners,
+                           ids, params, rejected);
+  for (const auto& q : corners) {
+    const cv::Rect r = (cv::boundingRect(q) + cv::Size(8, 8) - cv::Point(4, 4)) &
+                       cv::Rect(cv::Point(0, 0), size);
+    bg(r).setTo(cv::mean(bg(r)));
+  }
+  return bg;
+}
+
+// Centred linear motion-blur kernel: the segment is splatted bilinearly at
+// fine steps so fractional lengths/angles work and the blur adds no shift.
+cv::Mat MotionKernel(double length, double angle_deg) {
+  const int half = static_cast<int>(std::ceil(length / 2)) + 1;
+  cv::Mat k(2 * half + 1, 2 * half + 1, CV_64F, cv::Scalar(0));
+  const double dx = std::cos(angle_deg * kDeg), dy = std::sin(angle_deg * kDeg);
+  const int steps = std::max(2, static_cast<int>(length * 16));
+  for (int i = 0; i <= steps; ++i) {
+    const double t = length * (double(i) / steps - 0.5);
+    const double x = half + t * dx, y = half + t * dy;
+    const int ix = static_cast<int>(std::floor(x)), iy = static_cast<int>(std::floor(y));
+    const double fx = x - ix, fy = y - iy;
+    k.at<double>(iy, ix) += (1 - fx) * (1 - fy);
+    k.at<double>(iy, ix + 1) += fx * (1 - fy);
+    k.at<double>(iy + 1, ix) += (1 - fx) * fy;
+    k.at<double>(iy + 1, ix + 1) += fx * fy;
+  }
+  return k / cv::sum(k)[0];
+}
+
+}  // namespace
+
+Camera MakeCamera(cv::Size size, double hfov_deg) {
+  const double f = 0.5 * size.width / std::tan(0.5 * hfov_deg * kDeg);
+  return {cv::Matx33d(f, 0, 0.5 * (size.width - 1), 0, f, 0.5 * (size.height - 1), 0, 0, 1), {},
+          size};
+}
+
+std::array<cv::Point3d, 4> MarkerCorners3d(double side) {
+  const double h = side / 2;
+  return {cv::Point3d(-h, h, 0), cv::Point3d(h, h, 0), cv::Point3d(h, -h, 0),
+          cv::Point3d(-h, -h, 0)};
+}
+
+std::array<cv::Point2f, 4> ProjectCorners(const Camera& cam, const Marker& m) {
+  const auto obj = MarkerCorners3d(m.side);
+  std::vector<cv::Point2d> img;
+  cv::projectPoints(std::vector<cv::Point3d>(obj.begin(), obj.end()), m.rvec, m.tvec, cam.K,
+                    DistMat(cam), img);
+  return {cv::Point2f(img[0]), cv::Point2f(img[1]), cv::Point2f(img[2]), cv::Point2f(img[3])};
+}
+
+cv::Point2f ProjectCentre(const Camera& cam, const Marker& m) {
+  std::vector<cv::Point2d> img;
+  cv::projectPoints(std::vector<cv::Point3d>{{0, 0, 0}}, m.rvec, m.tvec, cam.K, DistMat(cam), img);
+  return cv::Point2f(img[0]);
+}
+
+cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
+                    const RenderOptions& opt, cv::Mat* depth) {
+  CV_Assert(cam.size.area() > 0 && opt.supersample >= 1);
+  cv::Mat img;
+  Background(cam.size, opt).convertTo(img, CV_32FC3);
+  cv::Mat z(cam.size, CV_32F, cv::Scalar(opt.background_depth));
+
+  const auto dict = cv::aruco::getPredefinedDictionary(opt.dictionary);
+  std::vector<PreparedMarker> prep;
+  for (const Marker& m : markers) {
+    CV_Assert(m.id >= 0 && m.id < dict->bytesList.rows && m.side > 0);
+    cv::Mat bits;  // one pixel per cell, border included
+    cv::aruco::drawMarker(dict, m.id, dict->markerSize + 2, bits, 1);
+    prep.push_back(Prepare(cam, m, bits, opt.quiet_zone));
+    if (prep.back().box.empty()) prep.pop_back();
+  }
+
+  if (!prep.empty()) {
+    const RayMap rays(cam);
+    const int n = opt.supersample;
+    const double inv_n2 = 1.0 / (n * n);
+    cv::Rect all = prep[0].box;
+    for (const auto& p : prep) all |= p.box;
+    cv::parallel_for_(cv::Range(all.y, all.y + all.height), [&](const cv::Range& range) {
+      std::vector<const PreparedMarker*> cand;
+      for (int v = range.start; v < range.end; ++v) {
+        auto* row = img.ptr<cv::Vec3f>(v);
+        auto* zrow = z.ptr<float>(v);
+        for (int u = all.x; u < all.x + all.width; ++u) {
+          cand.clear();
+          for (const auto& p : prep)
+            if (p.box.contains(cv::Point(u, v))) cand.push_back(&p);
+          if (cand.empty()) continue;
+          double sum = 0, g = 0, zz = 0;
+          int misses = 0;
+          for (int j = 0; j < n; ++j)
+            for (int i = 0; i < n; ++i) {
+              const cv::Vec2d r = rays(u + (i + 0.5) / n - 0.5, v + (j + 0.5) / n - 0.5);
+              if (CastRay(cand, r[0], r[1], opt.background_depth, opt.white_level,
+                          opt.black_level, &g, &zz))
+                sum += g;
+              else
+                ++misses;
+            }
+          // Misses keep the background colour; hits are achromatic ink/paper.
+          row[u] = row[u] * static_cast<float>(misses * inv_n2) +
+                   cv::Vec3f::all(static_cast<float>(sum * inv_n2));
+          const cv::Vec2d rc = rays(u, v);
+          CastRay(cand, rc[0], rc[1], opt.background_depth, 0, 0, &g, &zz);
+          zrow[u] = static_cast<float>(zz);
+        }
+      }
+    });
+  }
+
+  // Photometric degradations act on the finished optical image, in float so
+  // rounding happens once.
+  if (!opt.colour) cv::cvtColor(img, img, cv::COLOR_BGR2GRAY);
+  img = ((img - cv::Scalar::all(128)) * opt.contrast + cv::Scalar::all(128)) * opt.brightness;
+  if (opt.blur_sigma > 0) cv::GaussianBlur(img, img, cv::Size(), opt.blur_sigma);
+  if (opt.motion_blur_px > 0)
+    cv::filter2D(img, img, -1, MotionKernel(opt.motion_blur_px, opt.motion_blur_angle_deg),
+                 cv::Point(-1, -1), 0, cv::BORDER_REFLECT);
+  if (opt.noise_sigma > 0) {
+    cv::Mat noise(img.size(), img.type());
+    cv::RNG rng(opt.seed * 747796405u + 2891336453u);
+    rng.fill(noise, cv::RNG::NORMAL, cv::Scalar::all(0), cv::Scalar::all(opt.noise_sigma));
+    img += noise;
+  }
+  cv::Mat out;
+  img.convertTo(out, opt.colour ? CV_8UC3 : CV_8UC1);  // rounds and saturates
+  if (depth) *depth = z;
+  return out;
+}
+
+cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt) {
+  CV_Assert(depth.type() == CV_32F && depth.size() == cam.size);
+  const RayMap rays(cam);
+  cv::RNG rng(opt.seed);
+  cv::Mat noise(depth.size(), CV_64F, cv::Scalar(0));
+  if (opt.depth_noise_sigma > 0)
+    rng.fill(noise, cv::RNG::NORMAL, cv::Scalar(0), cv::Scalar(opt.depth_noise_sigma));
+
+  // Holes: a blurred random field thresholded at its quantile makes stereo-like
+  // clustered dropouts of the requested share; the rest is salt.
+  cv::Mat hole(depth.size(), CV_8U, cv::Scalar(0));
+  if (opt.nan_fraction > 0) {
+    const double blob_share = opt.hole_blobs ? 0.7 : 0.0;
+    if (blob_share > 0) {
+      cv::Mat field(depth.size(), CV_32F);
+      rng.fill(field, cv::RNG::UNIFORM, cv::Scalar(0), cv::Scalar(1));
+      cv::GaussianBlur(field, field, cv::Size(), 6.0);
+      std::vector<float> vals(field.begin<float>(), field.end<float>());
+      const size_t k = std::min(vals.size() - 1,
+                                static_cast<size_t>(vals.size() * (1.0 - blob_share * opt.nan_fraction)));
+      std::nth_element(vals.begin(), vals.begin() + k, vals.end());
+      hole = field > vals[k];
+    }
+    cv::Mat salt(depth.size(), CV_32F);
+    rng.fill(salt, cv::RNG::UNIFORM, cv::Scalar(0), cv::Scalar(1));
+    hole |= salt < (1.0 - blob_share) * opt.nan_fraction;
+  }
+
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  cv::Mat cloud(depth.size(), CV_32FC3);
+  for (int v = 0; v < depth.rows; ++v)
+    for (int u = 0; u < depth.cols; ++u) {
+      const double d = depth.at<float>(v, u);
+      if (hole.at<uchar>(v, u) || !std::isfinite(d) || d <= 0) {
+        cloud.at<cv::Vec3f>(v, u) = cv::Vec3f(nan, nan, nan);
+        continue;
+      }
+      const cv::Vec2d r = rays(u, v);
+      const double zn = d * (1.0 + noise.at<double>(v, u));  // along the ray: x, y scale too
+      cloud.at<cv::Vec3f>(v, u) = cv::Vec3f(static_cast<float>(r[0] * zn),
+                                            static_cast<float>(r[1] * zn), static_cast<float>(zn));
+    }
+  return cloud;
+}
+
+Marker FacingCamera(int id, double side, cv::Vec3d position, double yaw_deg, double pitch_deg,
+                    double roll_deg) {
+  // Facing: marker x -> camera x, marker y -> camera -y (up), marker z -> camera -z.
+  const cv::Matx33d facing(1, 0, 0, 0, -1, 0, 0, 0, -1);
+  const double y = yaw_deg * kDeg, p = pitch_deg * kDeg, r = roll_deg * kDeg;
+  const cv::Matx33d ry(std::cos(y), 0, std::sin(y), 0, 1, 0, -std::sin(y), 0, std::cos(y));
+  const cv::Matx33d rx(1, 0, 0, 0, std::cos(p), -std::sin(p), 0, std::sin(p), std::cos(p));
+  const cv::Matx33d rz(std::cos(r), -std::sin(r), 0, std::sin(r), std::cos(r), 0, 0, 0, 1);
+  Marker m;
+  m.id = id;
+  m.side = side;
+  cv::Rodrigues(facing * ry * rx * rz, m.rvec);
+  m.tvec = position;
+  return m;
+}
+
+Marker RandomMarker(cv::RNG& rng, const Camera& cam, int id, double side, double min_range,
+                    double max_range, double max_tilt_deg) {
+  for (int attempt = 0; attempt < 200; ++attempt) {
+    const double zc = rng.uniform(min_range, max_range);
+    const double u = rng.uniform(0.0, double(cam.size.width)),
+                 v = rng.uniform(0.0, double(cam.size.height));
+    const cv::Vec3d ray = cam.K.inv() * cv::Vec3d(u, v, 1.0);
+    // Tilt about a random in-plane axis; uniform in angle, not solid angle,
+    // so strong obliques are well represented.
+    const double axis = rng.uniform(0.0, 360.0), tilt = rng.uniform(0.0, max_tilt_deg);
+    Marker m = FacingCamera(id, side, ray * zc, tilt * std::cos(axis * kDeg),
+                            tilt * std::sin(axis * kDeg), rng.uniform(0.0, 360.0));
+    Marker big = m;
+    big.side = side * 1.5;  // leaves room for the quiet zone and detector margins
+    bool ok = true;
+    for (const auto& c : MarkerCorners3d(big.side)) {
+      cv::Matx33d r;
+      cv::Rodrigues(m.rvec, r);
+      ok &= (r * cv::Vec3d(c.x, c.y, c.z) + m.tvec)[2] > 0.05;
+    }
+    if (!ok) continue;
+    for (const auto& p : ProjectCorners(cam, big))
+      ok &= p.x >= 2 && p.y >= 2 && p.x <= cam.size.width - 3 && p.y <= cam.size.height - 3;
+    if (ok) return m;
+  }
+  return FacingCamera(id, side, cv::Vec3d(0, 0, 0.5 * (min_range + max_range)));
+}
+
+}  // namespace arucotag::sim
