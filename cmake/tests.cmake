@@ -2,8 +2,11 @@
 set(ARUCOTAG_TEST_DATA "${CMAKE_CURRENT_SOURCE_DIR}/test/data")
 
 catkin_add_gtest(test_core
+  test/core/test_bad_input.cpp
+  test/core/test_point_cloud.cpp
+  test/core/test_preprocess.cpp
   test/core/test_real_photos.cpp
-)
+  test/core/test_synthetic.cpp)
 target_link_libraries(test_core arucotag_sim arucotag_core ${GTEST_MAIN_LIBRARIES})
 target_compile_definitions(test_core PRIVATE
   ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"

@@ -43,7 +43,7 @@ struct DetectorConfig {
   double error_correction_rate = 0.6;
   int corner_refinement_win_size = 5;
   int corner_refinement_max_iterations = 30;
-  double corner_refinement_min_accuracy = 0.1;
+  double corner_refinement_min_accuracy = 0.01;
   bool detect_inverted_marker = false;
 
   std::vector<int> allowed_ids;  ///< when not empty, only these ids are reported

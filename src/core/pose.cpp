@@ -157,14 +157,11 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
   const cv::Matx33d to_marker = cv::getPerspectiveTransform(image_quad, marker_quad);
   const cv::Rect box = cv::boundingRect(image_quad) & cv::Rect(cv::Point(0, 0), image_size);
   const double limit = 0.5 * (1.0 - options.shrink);
-  // Stride so big (close) tags cost about max_samples points; accuracy is limited by noise, not count.
-  const int stride = std::max(1, static_cast<int>(std::ceil(std::sqrt(
-                                     static_cast<double>(box.area()) / std::max(1, options.max_samples)))));
 
   std::vector<Sample> samples;
-  for (int v = box.y; v < box.y + box.height; v += stride) {
+  for (int v = box.y; v < box.y + box.height; ++v) {
     const auto* row = cloud.ptr<cv::Vec3f>(v);
-    for (int u = box.x; u < box.x + box.width; u += stride) {
+    for (int u = box.x; u < box.x + box.width; ++u) {
       const cv::Vec3d m = to_marker * cv::Vec3d(u, v, 1.0);
       if (!(std::abs(m[2]) > 1e-12)) continue;
       const double a = m[0] / m[2], b = m[1] / m[2];
@@ -173,6 +170,14 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
       if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]) || !(p[2] > 0.0f)) continue;
       samples.push_back({a, b, cv::Vec3d(p[0], p[1], p[2])});
     }
+  }
+  // Thin out close (large) tags after collecting, so sparse clouds keep every point they have;
+  // accuracy is limited by depth noise, not by the point count.
+  if (options.max_samples > 0 && static_cast<int>(samples.size()) > options.max_samples) {
+    const size_t step = (samples.size() + options.max_samples - 1) / options.max_samples;
+    size_t kept = 0;
+    for (size_t i = 0; i < samples.size(); i += step) samples[kept++] = samples[i];
+    samples.resize(kept);
   }
   if (static_cast<int>(samples.size()) < options.min_points) {
     return false;

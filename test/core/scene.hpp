@@ -1,0 +1,47 @@
+// Shared helpers of the core tests: a rover-like camera and rendered scenes with known truth.
+#pragma once
+
+#include <cmath>
+#include <vector>
+
+#include <opencv2/calib3d.hpp>
+
+#include <arucotag/arucotag.hpp>
+#include <arucotag/sim.hpp>
+
+namespace arucotag::test {
+
+inline constexpr double kDeg = M_PI / 180.0;
+
+/// 1280x720 with a 65 degree horizontal field of view (fx about 1005 px), like a rover mast camera.
+inline sim::Camera RoverCamera(bool distorted = false) {
+  sim::Camera camera = sim::MakeCamera({1280, 720}, 65.0);
+  if (distorted) camera.dist = {-0.12, 0.03, 0.0005, -0.0004, 0.0};
+  return camera;
+}
+
+inline CameraModel ToModel(const sim::Camera& camera) {
+  return CameraModel::FromIntrinsics(camera.K, camera.dist);
+}
+
+/// Angle (rad) of the rotation taking one Rodrigues rotation to the other.
+inline double RotationError(const cv::Vec3d& a, const cv::Vec3d& b) {
+  cv::Matx33d ra, rb;
+  cv::Rodrigues(a, ra);
+  cv::Rodrigues(b, rb);
+  const cv::Matx33d d = ra.t() * rb;
+  const double c = std::max(-1.0, std::min(1.0, (cv::trace(d) - 1.0) / 2.0));
+  return std::acos(c);
+}
+
+/// Renders the markers and runs the default detector (sub-pixel corners) on the grey image.
+inline std::vector<ArucoTag> RenderAndDetect(const sim::Camera& camera, const std::vector<sim::Marker>& markers,
+                                             DetectorConfig config = {}, sim::RenderOptions options = {}) {
+  options.dictionary = DictionaryFromName(config.dictionary);
+  const cv::Mat image = sim::RenderScene(camera, markers, options);
+  cv::Mat grey;
+  PreprocessFrame(image, grey);
+  return Detect(grey, Detector(config));
+}
+
+}  // namespace arucotag::test

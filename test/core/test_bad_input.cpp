@@ -1,0 +1,125 @@
+// Every bad input gets an arucotag::Error that says what is wrong; nothing crashes.
+#include <gtest/gtest.h>
+
+#include <arucotag/arucotag.hpp>
+
+namespace arucotag {
+namespace {
+
+template <typename F>
+std::string ErrorOf(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(BadInput, EmptyImageEverywhere) {
+  cv::Mat empty, out;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(empty, out); }).find("empty"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { Detect(empty, Detector()); }).find("empty"), std::string::npos);
+  EXPECT_NE(ErrorOf([&] { DrawDetections(empty, {}); }).find("empty"), std::string::npos);
+}
+
+TEST(BadInput, FourChannelImageToDrawDetections) {
+  cv::Mat bgra(48, 64, CV_8UC4, cv::Scalar::all(255));
+  const std::string message = ErrorOf([&] { DrawDetections(bgra, {}); });
+  EXPECT_NE(message.find("1 or 3 channels"), std::string::npos) << message;
+  EXPECT_EQ(cv::countNonZero(bgra.reshape(1) != 255), 0) << "the image must be left untouched";
+}
+
+TEST(BadInput, SixteenBitImageToDetectSaysToPreprocess) {
+  cv::Mat mono16(48, 64, CV_16UC1, cv::Scalar(1000));
+  const std::string message = ErrorOf([&] { Detect(mono16, Detector()); });
+  EXPECT_NE(message.find("PreprocessFrame"), std::string::npos) << message;
+  // ... and PreprocessFrame does accept it.
+  cv::Mat grey;
+  PreprocessFrame(mono16, grey);
+  EXPECT_EQ(grey.type(), CV_8UC1);
+}
+
+TEST(BadInput, SixteenBitColourAndFloatImagesRejected) {
+  cv::Mat out;
+  EXPECT_FALSE(ErrorOf([&] { PreprocessFrame(cv::Mat(4, 4, CV_16UC3), out); }).empty());
+  EXPECT_FALSE(ErrorOf([&] { PreprocessFrame(cv::Mat(4, 4, CV_32FC1), out); }).empty());
+  PreprocessOptions rgb;
+  rgb.format = PixelFormat::kRgb8;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(cv::Mat(4, 4, CV_8UC1), out, rgb); }).find("does not match"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf([] { PixelFormatFromEncoding("yuv422"); }).find("yuv422"), std::string::npos);
+}
+
+TEST(BadInput, ZeroIntrinsics) {
+  ArucoTag tag;
+  tag.corners = {{{10, 10}, {20, 10}, {20, 20}, {10, 20}}};
+  const CameraModel zero = CameraModel::FromIntrinsics(cv::Matx33d::zeros(), {});
+  const std::string message = ErrorOf([&] { EstimatePoseFromPNP(zero, tag); });
+  EXPECT_NE(message.find("fx"), std::string::npos) << message;
+  EXPECT_EQ(tag.pose_source, PoseSource::kNone);
+
+  CameraModel nan_centre = CameraModel::FromIntrinsics(cv::Matx33d(500, 0, NAN, 0, 500, 240, 0, 0, 1), {});
+  EXPECT_FALSE(ErrorOf([&] { EstimatePoseFromPNP(nan_centre, tag); }).empty());
+  CameraModel odd_distortion = CameraModel::FromIntrinsics(cv::Matx33d(500, 0, 320, 0, 500, 240, 0, 0, 1), {0.1, 0.2, 0.3});
+  EXPECT_NE(ErrorOf([&] { EstimatePoseFromPNP(odd_distortion, tag); }).find("3 coefficients"), std::string::npos);
+}
+
+TEST(BadInput, NonPositiveSideLength) {
+  ArucoTag tag;
+  tag.corners = {{{10, 10}, {20, 10}, {20, 20}, {10, 20}}};
+  tag.side_length = 0.0;
+  const CameraModel camera = CameraModel::FromIntrinsics(cv::Matx33d(500, 0, 320, 0, 500, 240, 0, 0, 1), {});
+  EXPECT_NE(ErrorOf([&] { EstimatePoseFromPNP(camera, tag); }).find("side length"), std::string::npos);
+}
+
+TEST(BadInput, UnknownDictionaryListsValidNames) {
+  DetectorConfig config;
+  config.dictionary = "DICT_4X4_51";
+  const std::string message = ErrorOf([&] { Detector detector(config); });
+  EXPECT_NE(message.find("DICT_4X4_51"), std::string::npos);
+  for (const auto& name : DictionaryNames()) EXPECT_NE(message.find(name), std::string::npos) << name;
+  EXPECT_EQ(DictionaryNames().size(), 21u);
+}
+
+TEST(BadInput, BadDetectorParametersAreNamed) {
+  DetectorConfig config;
+  config.adaptive_thresh_win_size_min = 2;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("adaptive_thresh_win_size_min"), std::string::npos);
+  config = {};
+  config.side_lengths[7] = -0.1;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("id 7"), std::string::npos);
+  EXPECT_NE(ErrorOf([] { CornerRefinementFromName("subpixel"); }).find("subpix"), std::string::npos);
+}
+
+TEST(BadInput, WrongSizeCloudIsAnError) {
+  ArucoTag tag;
+  tag.corners = {{{10, 10}, {20, 10}, {20, 20}, {10, 20}}};
+  const cv::Mat cloud(240, 320, CV_32FC3, cv::Scalar::all(1.0));
+  const std::string message = ErrorOf([&] { EstimatePoseFromPointCloud(cloud, {640, 480}, tag); });
+  EXPECT_NE(message.find("320x240"), std::string::npos) << message;
+  EXPECT_NE(message.find("640x480"), std::string::npos) << message;
+  EXPECT_FALSE(ErrorOf([&] { EstimatePoseFromPointCloud(cv::Mat(480, 640, CV_32FC1), {640, 480}, tag); }).empty());
+}
+
+TEST(BadInput, AllNanCloudReportsFailureNotNan) {
+  ArucoTag tag;
+  tag.corners = {{{100, 100}, {200, 100}, {200, 200}, {100, 200}}};
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const cv::Mat cloud(480, 640, CV_32FC3, cv::Scalar(nan, nan, nan));
+  EXPECT_FALSE(EstimatePoseFromPointCloud(cloud, {640, 480}, tag));
+  EXPECT_FALSE(tag.cloud.valid);
+  EXPECT_EQ(tag.pose_source, PoseSource::kNone);
+  EXPECT_FALSE(std::isfinite(tag.distance));
+}
+
+TEST(BadInput, TagPartlyOutsideTheCloudIsClipped) {
+  ArucoTag tag;
+  tag.corners = {{{-50, -50}, {60, -50}, {60, 60}, {-50, 60}}};
+  const cv::Mat cloud(100, 100, CV_32FC3, cv::Scalar(0.0, 0.0, 2.0));
+  ASSERT_TRUE(EstimatePoseFromPointCloud(cloud, {100, 100}, tag));
+  EXPECT_NEAR(tag.cloud.centre[2], 2.0, 1e-6);
+}
+
+}  // namespace
+}  // namespace arucotag

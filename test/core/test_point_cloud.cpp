@@ -1,0 +1,133 @@
+// Pose from an organized cloud of a rendered scene with stereo-like holes and depth noise.
+#include <gtest/gtest.h>
+
+#include "scene.hpp"
+
+namespace arucotag {
+namespace {
+
+using test::kDeg;
+
+struct Scene {
+  sim::Camera camera = test::RoverCamera();
+  sim::Marker marker;
+  ArucoTag tag;
+  cv::Mat cloud;
+};
+
+Scene MakeScene(const sim::Marker& marker, double nan_fraction, double noise, unsigned seed = 2) {
+  Scene s;
+  s.marker = marker;
+  cv::Mat depth;
+  const cv::Mat image = sim::RenderScene(s.camera, {marker}, sim::RenderOptions(), &depth);
+  sim::CloudOptions cloud_options;
+  cloud_options.nan_fraction = nan_fraction;
+  cloud_options.depth_noise_sigma = noise;
+  cloud_options.seed = seed;
+  s.cloud = sim::MakeOrganizedCloud(s.camera, depth, cloud_options);
+  cv::Mat grey;
+  PreprocessFrame(image, grey);
+  auto tags = Detect(grey, Detector());
+  EXPECT_EQ(tags.size(), 1u);
+  if (!tags.empty()) s.tag = tags[0];
+  return s;
+}
+
+TEST(PointCloud, HolesAndNoiseGiveDistanceWithin1PercentAndYawWithinHalfDegree) {
+  int checked = 0;
+  for (double range : {1.0, 2.5, 5.0, 8.0}) {
+    for (double tilt : {0.0, 40.0}) {
+      const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.3 * range, 0.1 * range, range}, tilt, 0.0, 15.0);
+      Scene s = MakeScene(marker, 0.30, 0.01, 3 + checked);
+      ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, s.tag)) << range;
+      const double range_true = cv::norm(marker.tvec);
+      EXPECT_EQ(s.tag.pose_source, PoseSource::kPointCloud);
+      EXPECT_NEAR(s.tag.distance, range_true, 0.01 * range_true) << "range " << range << " tilt " << tilt;
+      EXPECT_NEAR(s.tag.yaw, std::atan2(marker.tvec[0], marker.tvec[2]), 0.5 * kDeg) << range << " " << tilt;
+      EXPECT_GT(s.tag.cloud.points, 12);
+      ++checked;
+    }
+  }
+  EXPECT_EQ(checked, 8);
+}
+
+TEST(PointCloud, PlaneNormalAndOrientationAtCloseRange) {
+  const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.2, 0.0, 1.2}, 35.0, 10.0, 90.0);
+  Scene s = MakeScene(marker, 0.30, 0.003);
+  ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, s.tag));
+  ASSERT_TRUE(s.tag.cloud.has_normal);
+  ASSERT_TRUE(s.tag.cloud.has_rotation);
+  cv::Matx33d truth;
+  cv::Rodrigues(marker.rvec, truth);
+  const cv::Vec3d normal_truth(truth(0, 2), truth(1, 2), truth(2, 2));
+  EXPECT_GT(s.tag.cloud.normal.dot(normal_truth), std::cos(3.0 * kDeg));
+  EXPECT_LE(test::RotationError(s.tag.rvec, marker.rvec), 3.0 * kDeg);
+  EXPECT_LT(s.tag.cloud.plane_rms, 0.02);
+}
+
+TEST(PointCloud, FlyingPixelsDoNotMoveTheCentre) {
+  const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.0, 0.0, 2.0});
+  Scene s = MakeScene(marker, 0.1, 0.002);
+  // Every 7th pixel jumps to the background wall, like stereo mismatches at edges.
+  for (int v = 0; v < s.cloud.rows; ++v) {
+    for (int u = v % 7; u < s.cloud.cols; u += 7) {
+      cv::Vec3f& p = s.cloud.at<cv::Vec3f>(v, u);
+      if (std::isfinite(p[2])) p *= 10.0f;
+    }
+  }
+  ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, s.tag));
+  EXPECT_NEAR(s.tag.distance, 2.0, 0.02);
+}
+
+TEST(PointCloud, FewPointsGiveCentreWithoutNormalAndNeverNan) {
+  const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.0, 0.0, 2.0});
+  Scene s = MakeScene(marker, 0.0, 0.0);
+  // Keep only a handful of points inside the tag.
+  const cv::Point2f centre = FindTagCenter(s.tag);
+  cv::Mat sparse(s.cloud.size(), CV_32FC3, cv::Scalar::all(std::numeric_limits<float>::quiet_NaN()));
+  for (int dv = -3; dv <= 3; dv += 3)
+    for (int du = -6; du <= 6; du += 3) {
+      const cv::Point p(cvRound(centre.x) + du, cvRound(centre.y) + dv);
+      sparse.at<cv::Vec3f>(p) = s.cloud.at<cv::Vec3f>(p);
+    }
+  CloudPoseOptions options;
+  options.min_points = 10;
+  ASSERT_TRUE(EstimatePoseFromPointCloud(sparse, s.camera.size, s.tag, options));
+  EXPECT_EQ(s.tag.cloud.points, 15);
+  EXPECT_FALSE(s.tag.cloud.has_normal);
+  EXPECT_NEAR(s.tag.distance, 2.0, 0.01);
+  EXPECT_TRUE(std::isfinite(s.tag.rvec[0]) && std::isfinite(s.tag.rvec[1]) && std::isfinite(s.tag.rvec[2]));
+
+  options.min_points = 16;
+  ArucoTag fresh = s.tag;
+  fresh.cloud = CloudResult();
+  fresh.pnp = PnpResult();
+  EXPECT_FALSE(EstimatePoseFromPointCloud(sparse, s.camera.size, fresh, options));
+  EXPECT_EQ(fresh.pose_source, PoseSource::kNone);
+}
+
+TEST(PointCloud, FusedPicksTheIppeSolutionTheCloudAgreesWith) {
+  const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.1, 0.05, 2.0}, 30.0, 0.0, 0.0);
+  Scene s = MakeScene(marker, 0.2, 0.005);
+  const CameraModel camera = test::ToModel(s.camera);
+  ASSERT_TRUE(EstimatePoseFromPNP(camera, s.tag));
+  ASSERT_EQ(s.tag.pnp.solutions, 2);
+  // Make the corners prefer the wrong solution: swap the two, as a noisy frame can.
+  std::swap(s.tag.pnp.rvec[0], s.tag.pnp.rvec[1]);
+  std::swap(s.tag.pnp.tvec[0], s.tag.pnp.tvec[1]);
+  std::swap(s.tag.pnp.rms[0], s.tag.pnp.rms[1]);
+  ResolvePose(s.tag, PoseSource::kPnp);
+  EXPECT_GT(test::RotationError(s.tag.rvec, marker.rvec), 20.0 * kDeg) << "the swapped solution must be the flip";
+
+  ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, s.tag));
+  EXPECT_EQ(s.tag.pose_source, PoseSource::kFused);
+  EXPECT_LE(test::RotationError(s.tag.rvec, marker.rvec), 1.0 * kDeg);
+  EXPECT_LE(cv::norm(s.tag.tvec - marker.tvec), 0.01);
+  EXPECT_LT(s.tag.depth_disagreement, 0.03);
+  EXPECT_EQ(ResolvePose(s.tag, PoseSource::kPointCloud), PoseSource::kPointCloud);
+  EXPECT_EQ(ResolvePose(s.tag, PoseSource::kNone), PoseSource::kNone);
+  EXPECT_FALSE(s.tag.HasPose());
+}
+
+}  // namespace
+}  // namespace arucotag
