@@ -7,8 +7,10 @@ catkin_add_gtest(test_core
   test/core/test_preprocess.cpp
   test/core/test_preprocess_recall.cpp
   test/core/test_real_photos.cpp
+  test/core/test_no_ros.cpp
   test/core/test_synthetic.cpp)
 target_link_libraries(test_core arucotag_sim arucotag_core ${GTEST_MAIN_LIBRARIES})
 target_compile_definitions(test_core PRIVATE
   ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"
-  ARUCOTAG_CORE_LIBRARY="$<TARGET_FILE:arucotag_core>")
+  ARUCOTAG_CORE_LIBRARY="$<TARGET_FILE:arucotag_core>"
+  ARUCOTAG_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")

@@ -47,7 +47,8 @@ struct CloudPoseOptions {
 /// their residual), takes the centre where the fit puts the marker centre, the face normal and,
 /// with enough points, the in-plane orientation. Fills tag.cloud and then the tag's pose (see
 /// ResolvePose). Returns false with tag.cloud.valid false when fewer than options.min_points finite
-/// points exist: it never produces a number made of NaNs. Throws arucotag::Error when the cloud is
+/// points exist (the pose falls back to PnP if the tag has one, else none): it never produces a
+/// number made of NaNs. Throws arucotag::Error when the cloud is
 /// not CV_32FC3 or its size differs from image_size.
 bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
                                 const CloudPoseOptions& options = {});

@@ -180,6 +180,8 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
     samples.resize(kept);
   }
   if (static_cast<int>(samples.size()) < options.min_points) {
+    // The old cloud result is gone: keep the pose consistent with what is still measured.
+    ResolvePose(tag, tag.pnp.valid ? PoseSource::kPnp : PoseSource::kNone);
     return false;
   }
 
