@@ -1,0 +1,41 @@
+# ROS layer: the detector nodelet (one library, image_pipeline style), the executable that hosts it
+# without a manager, and the rostests that drive both with rendered frames.
+# Generated headers (messages, dynamic_reconfigure) live in the devel space.
+set(ARUCOTAG_ROS_INCLUDES ${CATKIN_DEVEL_PREFIX}/include)
+
+add_library(arucotag_nodelet
+  src/nodelet/conversions.cpp
+  src/nodelet/detector_nodelet.cpp
+  src/nodelet/parameters.cpp)
+target_include_directories(arucotag_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+target_link_libraries(arucotag_nodelet arucotag_core ${catkin_LIBRARIES})
+add_dependencies(arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp ${PROJECT_NAME}_gencfg)
+
+add_executable(detector_node src/nodelet/detector_node.cpp)
+target_include_directories(detector_node SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+target_link_libraries(detector_node ${catkin_LIBRARIES})
+# The node loads the plugin at run time; build it whenever the node is built.
+add_dependencies(detector_node arucotag_nodelet)
+
+install(TARGETS arucotag_nodelet detector_node
+  ARCHIVE DESTINATION ${CATKIN_PACKAGE_LIB_DESTINATION}
+  LIBRARY DESTINATION ${CATKIN_PACKAGE_LIB_DESTINATION}
+  RUNTIME DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATION})
+
+if(CATKIN_ENABLE_TESTING)
+  # launch/*.launch parse, and every package they name is installed and declared in package.xml.
+  find_package(roslaunch REQUIRED)
+  roslaunch_add_file_check(launch)
+
+  find_package(rostest REQUIRED)
+  # Each rostest starts its own master and manager; the test node publishes frames rendered by
+  # arucotag_sim (ROS-free) and checks what the real nodelet publishes.
+  foreach(name detector lifecycle)
+    add_rostest_gtest(test_ros_${name} test/ros/${name}.test test/ros/test_${name}.cpp test/ros/rig.cpp)
+    target_include_directories(test_ros_${name} PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+    target_include_directories(test_ros_${name} SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+    target_link_libraries(test_ros_${name} arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
+    add_dependencies(test_ros_${name} arucotag_nodelet detector_node ${PROJECT_NAME}_generate_messages_cpp)
+  endforeach()
+endif()

@@ -1,0 +1,83 @@
+#pragma once
+
+// The one place where core types meet ROS messages. Nothing here logs; errors are arucotag::Error.
+#include <arucotag/ros/messages.hpp>
+
+#include <string>
+#include <vector>
+
+#include <geometry_msgs/Pose.h>
+#include <geometry_msgs/Transform.h>
+#include <geometry_msgs/TransformStamped.h>
+#include <opencv2/core.hpp>
+#include <sensor_msgs/CameraInfo.h>
+#include <sensor_msgs/CompressedImage.h>
+#include <sensor_msgs/Image.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <std_msgs/Header.h>
+#include <visualization_msgs/MarkerArray.h>
+
+#include <arucotag/aruco_tag.hpp>
+#include <arucotag/pose.hpp>
+#include <arucotag/preprocess.hpp>
+
+namespace arucotag {
+
+/// Marker -> camera rotation (Rodrigues) and marker centre (m) as a geometry_msgs/Pose.
+geometry_msgs::Pose ToPose(const cv::Vec3d& rvec, const cv::Vec3d& tvec);
+
+/// One detection as a message, pose in the camera optical frame. Fields without a measurement
+/// (no pose, no PnP, no cloud) are NaN or 0 as msg/ArucoTag.msg documents.
+ArucoTagMsg ToMessage(const ArucoTag& tag);
+
+/// All detections of one frame. `header` is the image's; when `to_output` is given the poses are
+/// moved by it and the header's frame_id becomes its parent frame (the ~output_frame).
+ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
+                        const geometry_msgs::TransformStamped* to_output = nullptr);
+
+/// Intrinsics from a camera_info. use_projection: take P's left 3x3 block and no distortion (for
+/// rectified images); otherwise K and D (plumb_bob or rational_polynomial). Throws when the matrix
+/// used is all zero (an uncalibrated driver), the distortion model is not one OpenCV's pinhole
+/// model accepts, or the info's size disagrees with `image_size` (when the info states one).
+CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size);
+
+/// A read-only view of an image message's pixels plus their layout. Throws on an empty image, a
+/// malformed buffer (step or size inconsistent) or an encoding PreprocessFrame does not support.
+struct ImageView {
+  cv::Mat pixels;      ///< shares the message's buffer: do not write
+  PixelFormat format;  ///< from the message's encoding
+};
+ImageView ViewImage(const sensor_msgs::Image& image);
+
+/// A bgr8 copy of any supported image for drawing on (mono is replicated, 16-bit scaled to 8 bits).
+cv::Mat ToBgrCopy(const ImageView& view);
+
+/// An 8- or 16-bit image as a message with the given encoding and header (the pixels are copied).
+sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& encoding,
+                                     const std_msgs::Header& header);
+
+/// Decodes a sensor_msgs/CompressedImage (jpeg or png) into an Image with the same header:
+/// bgr8/bgra8/mono8/mono16 depending on what the file holds. Throws when it cannot be decoded.
+sensor_msgs::ImagePtr DecodeCompressed(const sensor_msgs::CompressedImage& compressed);
+
+/// An organized PointCloud2 (float32 x, y, z fields at any offsets and point_step, little-endian)
+/// as a CV_32FC3 matrix of height x width, each point moved by `transform` when given (NaN points
+/// stay NaN). Throws on an unorganized cloud, missing or non-float32 x/y/z fields, big-endian data
+/// or a buffer shorter than its declared size.
+cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::Transform* transform = nullptr);
+
+/// The rviz view of a tag array: a DELETEALL first (so tags that disappear are cleared), then per
+/// tag with a pose a flat CUBE (side x side x 5 mm) at its pose and a TEXT_VIEW_FACING id label
+/// just above it. Stamp and frame are the array's.
+visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags);
+
+/// The TF of one tag: parent = header.frame_id, child = `child_frame`, stamp = header.stamp.
+geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,
+                                            const std::string& child_frame);
+
+/// Whether `a` is better measured than `b` (for choosing which of several faces with one id gets
+/// the TF): a pose beats none; with PnP on both, the lower reprojection error; otherwise more
+/// cloud points.
+bool BetterMeasured(const ArucoTagMsg& a, const ArucoTagMsg& b);
+
+}  // namespace arucotag

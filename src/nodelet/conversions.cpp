@@ -1,0 +1,334 @@
+#include <arucotag/ros/conversions.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+#include <boost/make_shared.hpp>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sensor_msgs/PointField.h>
+#include <sensor_msgs/image_encodings.h>
+#include <tf2/LinearMath/Matrix3x3.h>
+#include <tf2/LinearMath/Quaternion.h>
+#include <tf2_geometry_msgs/tf2_geometry_msgs.h>
+
+namespace arucotag {
+
+namespace {
+
+constexpr double kNan = std::numeric_limits<double>::quiet_NaN();
+constexpr double kMarkerThickness = 0.005;  // m: flat enough to read as a sheet in rviz
+
+geometry_msgs::Point ToPoint(const cv::Point2f& p) {
+  geometry_msgs::Point point;
+  point.x = p.x;
+  point.y = p.y;
+  return point;
+}
+
+std::string Size(int width, int height) { return std::to_string(width) + "x" + std::to_string(height); }
+
+}  // namespace
+
+geometry_msgs::Pose ToPose(const cv::Vec3d& rvec, const cv::Vec3d& tvec) {
+  cv::Matx33d r;
+  cv::Rodrigues(rvec, r);
+  const tf2::Matrix3x3 rotation(r(0, 0), r(0, 1), r(0, 2), r(1, 0), r(1, 1), r(1, 2), r(2, 0), r(2, 1), r(2, 2));
+  tf2::Quaternion q;
+  rotation.getRotation(q);
+  q.normalize();
+  geometry_msgs::Pose pose;
+  pose.position.x = tvec[0];
+  pose.position.y = tvec[1];
+  pose.position.z = tvec[2];
+  pose.orientation = tf2::toMsg(q);
+  return pose;
+}
+
+ArucoTagMsg ToMessage(const ArucoTag& tag) {
+  ArucoTagMsg msg;
+  msg.id = tag.id;
+  for (size_t i = 0; i < tag.corners.size(); ++i) msg.corners[i] = ToPoint(tag.corners[i]);
+  msg.center = ToPoint(FindTagCenter(tag));
+  msg.side_length = tag.side_length;
+  msg.pose_source = static_cast<uint8_t>(tag.pose_source);
+  if (tag.HasPose()) {
+    msg.pose = ToPose(tag.rvec, tag.tvec);
+  } else {
+    msg.pose.orientation.w = 1.0;  // a valid quaternion even when there is nothing to say
+  }
+  msg.distance = tag.distance;
+  msg.yaw = tag.yaw;
+  msg.reprojection_error = tag.reprojection_error;
+  msg.ambiguity = tag.pnp.valid ? tag.pnp.ambiguity : kNan;
+  msg.depth_disagreement = tag.depth_disagreement;
+  msg.cloud_points = tag.cloud.valid ? tag.cloud.points : 0;
+  return msg;
+}
+
+ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
+                        const geometry_msgs::TransformStamped* to_output) {
+  ArucoTagArray array;
+  array.header = header;
+  if (to_output) array.header.frame_id = to_output->header.frame_id;
+  array.tags.reserve(tags.size());
+  for (const auto& tag : tags) {
+    array.tags.push_back(ToMessage(tag));
+    if (to_output && tag.HasPose()) {
+      tf2::doTransform(array.tags.back().pose, array.tags.back().pose, *to_output);
+    }
+  }
+  return array;
+}
+
+CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size) {
+  if ((info.width != 0 || info.height != 0) &&
+      (static_cast<int>(info.width) != image_size.width || static_cast<int>(info.height) != image_size.height)) {
+    throw Error("camera_info is for a " + Size(info.width, info.height) + " image but the image is " +
+                Size(image_size.width, image_size.height));
+  }
+  const auto all_zero = [](const auto& values) {
+    return std::all_of(values.begin(), values.end(), [](double v) { return v == 0.0; });
+  };
+  CameraModel camera;
+  if (use_projection) {
+    if (all_zero(info.P)) throw Error("camera_info P is all zero (uncalibrated camera?)");
+    camera = CameraModel::FromProjection(cv::Matx34d(info.P.data()));
+  } else {
+    if (all_zero(info.K)) throw Error("camera_info K is all zero (uncalibrated camera?)");
+    const std::string& model = info.distortion_model;
+    if (!model.empty() && model != "plumb_bob" && model != "rational_polynomial" && !all_zero(info.D)) {
+      throw Error("camera_info distortion model '" + model +
+                  "' is not supported (plumb_bob, rational_polynomial); rectify the image and set ~rectified");
+    }
+    camera = CameraModel::FromIntrinsics(cv::Matx33d(info.K.data()), info.D);
+  }
+  camera.Validate();
+  return camera;
+}
+
+ImageView ViewImage(const sensor_msgs::Image& image) {
+  namespace enc = sensor_msgs::image_encodings;
+  if (image.width == 0 || image.height == 0 || image.data.empty()) {
+    throw Error("empty image (" + Size(image.width, image.height) + ", " + std::to_string(image.data.size()) +
+                " bytes)");
+  }
+  ImageView view;
+  view.format = PixelFormatFromEncoding(image.encoding);
+  const int channels = enc::numChannels(image.encoding);
+  const int depth = enc::bitDepth(image.encoding) == 16 ? CV_16U : CV_8U;
+  const size_t row_bytes = static_cast<size_t>(image.width) * channels * (depth == CV_16U ? 2 : 1);
+  if (image.step < row_bytes || image.data.size() < static_cast<size_t>(image.step) * image.height) {
+    throw Error("malformed image: " + Size(image.width, image.height) + " " + image.encoding + " with step " +
+                std::to_string(image.step) + " and " + std::to_string(image.data.size()) + " bytes");
+  }
+  if (depth == CV_16U && image.is_bigendian) {
+    throw Error("big-endian 16-bit images are not supported");
+  }
+  view.pixels = cv::Mat(static_cast<int>(image.height), static_cast<int>(image.width), CV_MAKETYPE(depth, channels),
+                        const_cast<uint8_t*>(image.data.data()), image.step);
+  return view;
+}
+
+cv::Mat ToBgrCopy(const ImageView& view) {
+  cv::Mat bgr;
+  switch (view.format) {
+    case PixelFormat::kRgb8:
+      cv::cvtColor(view.pixels, bgr, cv::COLOR_RGB2BGR);
+      break;
+    case PixelFormat::kBgra8:
+      cv::cvtColor(view.pixels, bgr, cv::COLOR_BGRA2BGR);
+      break;
+    case PixelFormat::kRgba8:
+      cv::cvtColor(view.pixels, bgr, cv::COLOR_RGBA2BGR);
+      break;
+    case PixelFormat::kMono8:
+      cv::cvtColor(view.pixels, bgr, cv::COLOR_GRAY2BGR);
+      break;
+    case PixelFormat::kMono16: {
+      double max_value = 0.0;
+      cv::minMaxLoc(view.pixels, nullptr, &max_value);
+      cv::Mat grey;
+      view.pixels.convertTo(grey, CV_8U, max_value > 0.0 ? 255.0 / max_value : 1.0);
+      cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
+      break;
+    }
+    case PixelFormat::kBgr8:
+    case PixelFormat::kAuto:
+      bgr = view.pixels.clone();
+      break;
+  }
+  return bgr;
+}
+
+sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& encoding,
+                                     const std_msgs::Header& header) {
+  auto image = boost::make_shared<sensor_msgs::Image>();
+  image->header = header;
+  image->width = static_cast<uint32_t>(pixels.cols);
+  image->height = static_cast<uint32_t>(pixels.rows);
+  image->encoding = encoding;
+  image->is_bigendian = false;
+  image->step = static_cast<uint32_t>(pixels.cols * pixels.elemSize());
+  image->data.resize(static_cast<size_t>(image->step) * image->height);
+  pixels.copyTo(cv::Mat(pixels.rows, pixels.cols, pixels.type(), image->data.data(), image->step));
+  return image;
+}
+
+sensor_msgs::ImagePtr DecodeCompressed(const sensor_msgs::CompressedImage& compressed) {
+  namespace enc = sensor_msgs::image_encodings;
+  cv::Mat decoded;
+  if (!compressed.data.empty()) {
+    decoded = cv::imdecode(cv::Mat(1, static_cast<int>(compressed.data.size()), CV_8UC1,
+                                   const_cast<uint8_t*>(compressed.data.data())),
+                           cv::IMREAD_UNCHANGED);
+  }
+  if (decoded.empty()) {
+    throw Error("cannot decode compressed image (format '" + compressed.format + "', " +
+                std::to_string(compressed.data.size()) + " bytes)");
+  }
+  if (decoded.depth() == CV_16U && decoded.channels() != 1) {
+    decoded.convertTo(decoded, CV_8U, 1.0 / 256.0);
+  }
+  std::string encoding;
+  switch (decoded.channels()) {
+    case 1:
+      encoding = decoded.depth() == CV_16U ? enc::MONO16 : enc::MONO8;
+      break;
+    case 3:
+      encoding = enc::BGR8;
+      break;
+    case 4:
+      encoding = enc::BGRA8;
+      break;
+    default:
+      throw Error("compressed image decodes to " + std::to_string(decoded.channels()) + " channels");
+  }
+  return ToImageMessage(decoded, encoding, compressed.header);
+}
+
+cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::Transform* transform) {
+  if (cloud.height <= 1 || cloud.width == 0) {
+    throw Error("point cloud is not organized (" + Size(cloud.width, cloud.height) +
+                "); an organized cloud has one point per image pixel");
+  }
+  if (cloud.is_bigendian) throw Error("big-endian point clouds are not supported");
+  int offsets[3] = {-1, -1, -1};
+  const char* names[3] = {"x", "y", "z"};
+  for (const auto& field : cloud.fields) {
+    for (int axis = 0; axis < 3; ++axis) {
+      if (field.name != names[axis]) continue;
+      if (field.datatype != sensor_msgs::PointField::FLOAT32 || field.count != 1) {
+        throw Error(std::string("point cloud field '") + names[axis] + "' is not a single float32");
+      }
+      offsets[axis] = static_cast<int>(field.offset);
+    }
+  }
+  for (int axis = 0; axis < 3; ++axis) {
+    if (offsets[axis] < 0) throw Error(std::string("point cloud has no '") + names[axis] + "' field");
+    if (static_cast<size_t>(offsets[axis]) + sizeof(float) > cloud.point_step) {
+      throw Error(std::string("point cloud field '") + names[axis] + "' lies beyond point_step");
+    }
+  }
+  if (cloud.row_step < static_cast<size_t>(cloud.width) * cloud.point_step ||
+      cloud.data.size() < static_cast<size_t>(cloud.row_step) * cloud.height) {
+    throw Error("point cloud buffer is shorter than " + Size(cloud.width, cloud.height) + " points of " +
+                std::to_string(cloud.point_step) + " bytes");
+  }
+
+  cv::Matx33f r = cv::Matx33f::eye();
+  cv::Vec3f t(0.f, 0.f, 0.f);
+  if (transform) {
+    tf2::Quaternion q;
+    tf2::fromMsg(transform->rotation, q);
+    const tf2::Matrix3x3 m(q);
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) r(i, j) = static_cast<float>(m[i][j]);
+    t = cv::Vec3f(static_cast<float>(transform->translation.x), static_cast<float>(transform->translation.y),
+                  static_cast<float>(transform->translation.z));
+  }
+  cv::Mat out(static_cast<int>(cloud.height), static_cast<int>(cloud.width), CV_32FC3);
+  for (int v = 0; v < out.rows; ++v) {
+    const uint8_t* row = cloud.data.data() + static_cast<size_t>(v) * cloud.row_step;
+    auto* dst = out.ptr<cv::Vec3f>(v);
+    for (int u = 0; u < out.cols; ++u) {
+      const uint8_t* point = row + static_cast<size_t>(u) * cloud.point_step;
+      cv::Vec3f p;
+      for (int axis = 0; axis < 3; ++axis) std::memcpy(&p[axis], point + offsets[axis], sizeof(float));
+      // NaN propagates through the transform, so holes stay holes.
+      dst[u] = transform ? cv::Vec3f(r * p + t) : p;
+    }
+  }
+  return out;
+}
+
+visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
+  visualization_msgs::MarkerArray markers;
+  visualization_msgs::Marker clear;
+  clear.header = tags.header;
+  clear.action = visualization_msgs::Marker::DELETEALL;
+  markers.markers.push_back(clear);
+  int next_id = 0;
+  for (const auto& tag : tags.tags) {
+    if (tag.pose_source == ArucoTagMsg::NONE) continue;
+    visualization_msgs::Marker box;
+    box.header = tags.header;
+    box.ns = "aruco_tags";
+    box.id = next_id++;
+    box.type = visualization_msgs::Marker::CUBE;
+    box.action = visualization_msgs::Marker::ADD;
+    box.pose = tag.pose;
+    box.scale.x = box.scale.y = tag.side_length;
+    box.scale.z = kMarkerThickness;
+    box.color.g = 0.8f;
+    box.color.b = 0.2f;
+    box.color.a = 0.8f;
+    markers.markers.push_back(box);
+
+    visualization_msgs::Marker label = box;
+    label.ns = "aruco_labels";
+    label.type = visualization_msgs::Marker::TEXT_VIEW_FACING;
+    label.text = std::to_string(tag.id);
+    // Above the tag along its own y (the printed "up"), so the label never hides the box.
+    tf2::Quaternion q;
+    tf2::fromMsg(tag.pose.orientation, q);
+    const tf2::Vector3 up = tf2::quatRotate(q, tf2::Vector3(0.0, 0.75 * tag.side_length, 0.0));
+    label.pose.position.x += up.x();
+    label.pose.position.y += up.y();
+    label.pose.position.z += up.z();
+    label.scale.x = label.scale.y = 0.0;
+    label.scale.z = std::max(0.05, 0.4 * tag.side_length);
+    label.color.r = label.color.g = label.color.b = label.color.a = 1.0f;
+    markers.markers.push_back(label);
+  }
+  return markers;
+}
+
+geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,
+                                            const std::string& child_frame) {
+  geometry_msgs::TransformStamped transform;
+  transform.header = header;
+  transform.child_frame_id = child_frame;
+  transform.transform.translation.x = tag.pose.position.x;
+  transform.transform.translation.y = tag.pose.position.y;
+  transform.transform.translation.z = tag.pose.position.z;
+  transform.transform.rotation = tag.pose.orientation;
+  return transform;
+}
+
+bool BetterMeasured(const ArucoTagMsg& a, const ArucoTagMsg& b) {
+  const bool a_pose = a.pose_source != ArucoTagMsg::NONE, b_pose = b.pose_source != ArucoTagMsg::NONE;
+  if (a_pose != b_pose) return a_pose;
+  if (std::isfinite(a.reprojection_error) && std::isfinite(b.reprojection_error)) {
+    return a.reprojection_error < b.reprojection_error;
+  }
+  if (std::isfinite(a.reprojection_error) != std::isfinite(b.reprojection_error)) {
+    return std::isfinite(a.reprojection_error);
+  }
+  return a.cloud_points > b.cloud_points;
+}
+
+}  // namespace arucotag

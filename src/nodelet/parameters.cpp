@@ -1,0 +1,256 @@
+#include <arucotag/ros/parameters.hpp>
+
+#include <cmath>
+#include <set>
+
+#include <ros/param.h>
+
+namespace arucotag {
+
+namespace {
+
+using Reconfigure = ArucotagDetectorConfig;
+
+// One live-tunable value: its ROS name, where the core keeps it and where dynamic_reconfigure does.
+template <class Core, class T>
+struct Field {
+  const char* name;
+  T Core::*core;
+  T Reconfigure::*live;
+};
+
+#define ARUCOTAG_FIELD(CORE, NAME) \
+  Field<CORE, decltype(CORE::NAME)> { #NAME, &CORE::NAME, &Reconfigure::NAME }
+
+const Field<DetectorConfig, int> kDetectorInts[] = {
+    ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_win_size_min),
+    ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_win_size_max),
+    ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_win_size_step),
+    ARUCOTAG_FIELD(DetectorConfig, min_distance_to_border),
+    ARUCOTAG_FIELD(DetectorConfig, perspective_remove_pixel_per_cell),
+    ARUCOTAG_FIELD(DetectorConfig, corner_refinement_win_size),
+    ARUCOTAG_FIELD(DetectorConfig, corner_refinement_max_iterations),
+};
+const Field<DetectorConfig, double> kDetectorDoubles[] = {
+    ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_constant),
+    ARUCOTAG_FIELD(DetectorConfig, min_marker_perimeter_rate),
+    ARUCOTAG_FIELD(DetectorConfig, max_marker_perimeter_rate),
+    ARUCOTAG_FIELD(DetectorConfig, polygonal_approx_accuracy_rate),
+    ARUCOTAG_FIELD(DetectorConfig, min_corner_distance_rate),
+    ARUCOTAG_FIELD(DetectorConfig, min_marker_distance_rate),
+    ARUCOTAG_FIELD(DetectorConfig, perspective_remove_ignored_margin_per_cell),
+    ARUCOTAG_FIELD(DetectorConfig, max_erroneous_bits_in_border_rate),
+    ARUCOTAG_FIELD(DetectorConfig, min_otsu_std_dev),
+    ARUCOTAG_FIELD(DetectorConfig, error_correction_rate),
+    ARUCOTAG_FIELD(DetectorConfig, corner_refinement_min_accuracy),
+};
+const Field<DetectorConfig, bool> kDetectorBools[] = {
+    ARUCOTAG_FIELD(DetectorConfig, detect_inverted_marker),
+};
+const Field<PreprocessOptions, int> kPreprocessInts[] = {
+    ARUCOTAG_FIELD(PreprocessOptions, clahe_tile_grid),
+};
+const Field<PreprocessOptions, double> kPreprocessDoubles[] = {
+    ARUCOTAG_FIELD(PreprocessOptions, clahe_clip_limit),
+    ARUCOTAG_FIELD(PreprocessOptions, unsharp_amount),
+    ARUCOTAG_FIELD(PreprocessOptions, unsharp_sigma),
+};
+const Field<PreprocessOptions, bool> kPreprocessBools[] = {
+    ARUCOTAG_FIELD(PreprocessOptions, equalize),
+};
+
+#undef ARUCOTAG_FIELD
+
+// Private parameters read outside the tables above.
+const char* const kOtherNames[] = {
+    "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
+    "image_transport", "use_point_cloud", "approximate_sync", "queue_size", "pose_source", "publish_tf",
+    "output_frame", "frame_prefix", "rectified", "input_timeout", "tf_timeout",
+    "diagnostic_period",  // diagnostic_updater's own
+};
+
+template <class T>
+const char* TypeName();
+template <>
+const char* TypeName<int>() { return "an integer"; }
+template <>
+const char* TypeName<double>() { return "a number"; }
+template <>
+const char* TypeName<bool>() { return "true or false"; }
+template <>
+const char* TypeName<std::string>() { return "a string"; }
+template <>
+const char* TypeName<std::vector<int>>() { return "a list of integers"; }
+
+// Absent keeps `value`; present with another type throws.
+template <class T>
+void Get(const ros::NodeHandle& pnh, const std::string& name, T& value) {
+  if (pnh.hasParam(name) && !pnh.getParam(name, value)) {
+    throw Error("~" + name + " must be " + TypeName<T>());
+  }
+}
+
+void Require(bool ok, const std::string& name, const std::string& why) {
+  if (!ok) throw Error("~" + name + " " + why);
+}
+
+// Calls visit(field, core) for every live-tunable field with the struct it belongs to.
+template <class Visit>
+void ForEachField(DetectorConfig& detector, PreprocessOptions& preprocess, Visit&& visit) {
+  const auto each = [&visit](const auto& fields, auto& core) {
+    for (const auto& field : fields) visit(field, core);
+  };
+  each(kDetectorInts, detector);
+  each(kDetectorDoubles, detector);
+  each(kDetectorBools, detector);
+  each(kPreprocessInts, preprocess);
+  each(kPreprocessDoubles, preprocess);
+  each(kPreprocessBools, preprocess);
+}
+
+std::map<int, double> ReadTagSizes(const ros::NodeHandle& pnh) {
+  std::map<int, double> sizes;
+  XmlRpc::XmlRpcValue value;
+  if (!pnh.getParam("tag_sizes", value)) return sizes;
+  // XmlRpc structs have string keys; roslaunch even refuses integer yaml keys, so ids come quoted.
+  Require(value.getType() == XmlRpc::XmlRpcValue::TypeStruct, "tag_sizes",
+          "must be a map from id to side length in m, e.g. {\"3\": 0.2}");
+  for (auto& [key, side_value] : value) {
+    int id = -1;
+    size_t used = 0;
+    try {
+      id = std::stoi(key, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    Require(used == key.size() && id >= 0, "tag_sizes", "has key '" + key + "', which is not a marker id");
+    double side = 0.0;
+    if (side_value.getType() == XmlRpc::XmlRpcValue::TypeDouble) {
+      side = static_cast<double>(side_value);
+    } else if (side_value.getType() == XmlRpc::XmlRpcValue::TypeInt) {
+      side = static_cast<int>(side_value);
+    } else {
+      Require(false, "tag_sizes", "must map id " + key + " to a number (m)");
+    }
+    Require(std::isfinite(side) && side > 0.0, "tag_sizes", "must map id " + key + " to a side > 0 m");
+    sizes[id] = side;
+  }
+  return sizes;
+}
+
+void RequireIds(const std::vector<int>& ids, const std::string& name) {
+  for (int id : ids) Require(id >= 0, name, "must hold marker ids >= 0, got " + std::to_string(id));
+}
+
+}  // namespace
+
+NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
+  NodeletParameters p;
+  DetectorConfig& d = p.detector;
+
+  Get(pnh, "dictionary", d.dictionary);
+  try {
+    DictionaryFromName(d.dictionary);
+  } catch (const Error& e) {
+    throw Error(std::string("~dictionary: ") + e.what());
+  }
+  Get(pnh, "tag_size", d.default_side_length);
+  Require(std::isfinite(d.default_side_length) && d.default_side_length > 0.0, "tag_size",
+          "must be > 0 m, got " + std::to_string(d.default_side_length));
+  d.side_lengths = ReadTagSizes(pnh);
+  Get(pnh, "allowed_ids", d.allowed_ids);
+  RequireIds(d.allowed_ids, "allowed_ids");
+  Get(pnh, "ignored_ids", d.ignored_ids);
+  RequireIds(d.ignored_ids, "ignored_ids");
+
+  std::string refinement = "subpix";
+  Get(pnh, "corner_refinement", refinement);
+  try {
+    d.corner_refinement = CornerRefinementFromName(refinement);
+  } catch (const Error& e) {
+    throw Error(std::string("~corner_refinement: ") + e.what());
+  }
+  Get(pnh, "marker_border_bits", d.marker_border_bits);
+  ForEachField(d, p.preprocess, [&pnh](const auto& field, auto& core) { Get(pnh, field.name, core.*field.core); });
+  try {
+    Detector check(d);
+  } catch (const Error& e) {
+    throw Error(std::string("~") + e.what());
+  }
+
+  Require(std::isfinite(p.preprocess.clahe_clip_limit) && p.preprocess.clahe_clip_limit > 0.0, "clahe_clip_limit",
+          "must be > 0");
+  Require(p.preprocess.clahe_tile_grid >= 1, "clahe_tile_grid", "must be >= 1");
+  Require(std::isfinite(p.preprocess.unsharp_amount) && p.preprocess.unsharp_amount >= 0.0, "unsharp_amount",
+          "must be >= 0");
+  Require(std::isfinite(p.preprocess.unsharp_sigma) && p.preprocess.unsharp_sigma > 0.0, "unsharp_sigma",
+          "must be > 0 px");
+
+  std::string transport = "raw";
+  Get(pnh, "image_transport", transport);
+  Require(transport == "raw" || transport == "compressed", "image_transport",
+          "must be raw or compressed (Debian has no compressed_image_transport plugin; the nodelet decodes "
+          "compressed itself), got '" + transport + "'");
+  p.compressed = transport == "compressed";
+
+  Get(pnh, "use_point_cloud", p.use_point_cloud);
+  Get(pnh, "approximate_sync", p.approximate_sync);
+  Get(pnh, "queue_size", p.queue_size);
+  Require(p.queue_size >= 1, "queue_size", "must be >= 1");
+
+  std::string source = "fused";
+  Get(pnh, "pose_source", source);
+  if (source == "pnp") {
+    p.pose_source = PoseSource::kPnp;
+  } else if (source == "point_cloud") {
+    p.pose_source = PoseSource::kPointCloud;
+  } else if (source == "fused") {
+    p.pose_source = PoseSource::kFused;
+  } else {
+    Require(false, "pose_source", "must be pnp, point_cloud or fused, got '" + source + "'");
+  }
+
+  Get(pnh, "publish_tf", p.publish_tf);
+  Get(pnh, "output_frame", p.output_frame);
+  Get(pnh, "frame_prefix", p.frame_prefix);
+  Require(!p.frame_prefix.empty(), "frame_prefix", "must not be empty (child frames would be bare ids)");
+  Get(pnh, "rectified", p.rectified);
+  Get(pnh, "input_timeout", p.input_timeout);
+  Require(std::isfinite(p.input_timeout) && p.input_timeout > 0.0, "input_timeout", "must be > 0 s");
+  Get(pnh, "tf_timeout", p.tf_timeout);
+  Require(std::isfinite(p.tf_timeout) && p.tf_timeout >= 0.0, "tf_timeout", "must be >= 0 s");
+  return p;
+}
+
+std::vector<std::string> UnknownParameters(const ros::NodeHandle& pnh) {
+  std::set<std::string> known(std::begin(kOtherNames), std::end(kOtherNames));
+  DetectorConfig detector;
+  PreprocessOptions preprocess;
+  ForEachField(detector, preprocess, [&known](const auto& field, auto&) { known.insert(field.name); });
+
+  std::vector<std::string> names;
+  ros::param::getParamNames(names);
+  const std::string prefix = pnh.getNamespace() + "/";
+  std::set<std::string> unknown;
+  for (const auto& name : names) {
+    if (name.compare(0, prefix.size(), prefix) != 0) continue;
+    const std::string top = name.substr(prefix.size(), name.find('/', prefix.size()) - prefix.size());
+    if (!known.count(top)) unknown.insert(top);
+  }
+  return {unknown.begin(), unknown.end()};
+}
+
+void ApplyReconfigure(const ArucotagDetectorConfig& config, DetectorConfig& detector, PreprocessOptions& preprocess) {
+  detector.corner_refinement = CornerRefinementFromName(config.corner_refinement);
+  ForEachField(detector, preprocess, [&config](const auto& field, auto& core) { core.*field.core = config.*field.live; });
+}
+
+ArucotagDetectorConfig ToReconfigure(DetectorConfig detector, PreprocessOptions preprocess) {
+  ArucotagDetectorConfig config = ArucotagDetectorConfig::__getDefault__();
+  static const char* const kRefinementNames[] = {"none", "subpix", "contour", "apriltag"};
+  config.corner_refinement = kRefinementNames[static_cast<int>(detector.corner_refinement)];
+  ForEachField(detector, preprocess, [&config](const auto& field, auto& core) { config.*field.live = core.*field.core; });
+  return config;
+}
+
+}  // namespace arucotag
