@@ -44,6 +44,11 @@ void CameraModel::Validate() const {
   }
 }
 
+namespace {
+// Above this RMS reprojection error (px) the IPPE result is treated as a solver failure.
+constexpr double kIppeFallbackRms = 1.0;
+}  // namespace
+
 bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   camera.Validate();
   const double s = tag.side_length;
@@ -59,31 +64,53 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
     if (!std::isfinite(c.x) || !std::isfinite(c.y)) return false;
     image.emplace_back(c);
   }
-  std::vector<cv::Mat> rvecs, tvecs;
-  cv::Mat errors;
   const cv::Mat K(camera.K);
   const cv::Mat dist = camera.distortion.empty() ? cv::Mat() : cv::Mat(camera.distortion);
-  int n = 0;
-  try {
-    n = cv::solvePnPGeneric(object, image, K, dist, rvecs, tvecs, false, cv::SOLVEPNP_IPPE_SQUARE, cv::noArray(),
-                            cv::noArray(), errors);
-  } catch (const cv::Exception& e) {
-    throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
-  }
+  struct Candidate {
+    cv::Vec3d rvec, tvec;
+    double rms;
+  };
+  std::vector<Candidate> candidates;
+  const auto solve = [&](int method) {
+    std::vector<cv::Mat> rvecs, tvecs;
+    cv::Mat errors;
+    int n = 0;
+    try {
+      n = cv::solvePnPGeneric(object, image, K, dist, rvecs, tvecs, false, static_cast<cv::SolvePnPMethod>(method),
+                              cv::noArray(), cv::noArray(), errors);
+    } catch (const cv::Exception& e) {
+      throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
+    }
+    for (int i = 0; i < n; ++i) {
+      const cv::Vec3d t(tvecs[i].ptr<double>());
+      const double rms = errors.at<double>(i);
+      if (!(t[2] > 0.0) || !std::isfinite(rms)) continue;  // behind the camera: not a physical solution
+      candidates.push_back({cv::Vec3d(rvecs[i].ptr<double>()), t, rms});
+    }
+  };
+  solve(cv::SOLVEPNP_IPPE_SQUARE);
+  // OpenCV 4.6's IPPE degenerates on some exactly frontal views (both solutions tens of pixels off);
+  // SQPNP finds the global optimum there, at about ten times the cost, so only when IPPE failed.
+  const auto best_rms = [&] {
+    double best = std::numeric_limits<double>::infinity();
+    for (const auto& c : candidates) best = std::min(best, c.rms);
+    return best;
+  };
+  if (!(best_rms() <= kIppeFallbackRms)) solve(cv::SOLVEPNP_SQPNP);
+  if (candidates.empty()) return false;
+  std::stable_sort(candidates.begin(), candidates.end(),
+                   [](const Candidate& a, const Candidate& b) { return a.rms < b.rms; });
+
   PnpResult result;
-  for (int i = 0; i < n && result.solutions < 2; ++i) {
-    const cv::Vec3d t(tvecs[i].ptr<double>());
-    if (!(t[2] > 0.0)) continue;  // behind the camera: not a physical solution
-    result.rvec[result.solutions] = cv::Vec3d(rvecs[i].ptr<double>());
-    result.tvec[result.solutions] = t;
-    result.rms[result.solutions] = errors.at<double>(i);
+  for (const auto& c : candidates) {
+    if (result.solutions == 2) break;
+    if (result.solutions == 1 && cv::norm(c.rvec - result.rvec[0]) < 1e-6 && cv::norm(c.tvec - result.tvec[0]) < 1e-9) {
+      continue;  // the fallback found IPPE's own answer again
+    }
+    result.rvec[result.solutions] = c.rvec;
+    result.tvec[result.solutions] = c.tvec;
+    result.rms[result.solutions] = c.rms;
     ++result.solutions;
-  }
-  if (result.solutions == 0) return false;
-  if (result.solutions == 2 && result.rms[1] < result.rms[0]) {
-    std::swap(result.rvec[0], result.rvec[1]);
-    std::swap(result.tvec[0], result.tvec[1]);
-    std::swap(result.rms[0], result.rms[1]);
   }
   if (result.solutions == 2) {
     result.ambiguity = result.rms[1] > 0.0 ? result.rms[0] / result.rms[1] : 1.0;

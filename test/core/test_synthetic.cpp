@@ -106,6 +106,20 @@ TEST(Synthetic, PnpPoseWithinHalfPercentAndOneDegree) {
   }
 }
 
+TEST(Synthetic, ExactlyFrontalTagIsNotFlipped) {
+  // OpenCV 4.6's IPPE returns two solutions tens of pixels off for this view; the core falls back.
+  const sim::Camera camera = test::RoverCamera();
+  for (const cv::Vec3d& position : {cv::Vec3d(0.1, 0.0, 2.0), cv::Vec3d(0.0, 0.0, 2.0), cv::Vec3d(0.1, 0.05, 3.0)}) {
+    const sim::Marker marker = sim::FacingCamera(3, 0.15, position);
+    ArucoTag tag;
+    tag.corners = sim::ProjectCorners(camera, marker);
+    ASSERT_TRUE(EstimatePoseFromPNP(test::ToModel(camera), tag));
+    EXPECT_LT(tag.reprojection_error, 0.2);
+    EXPECT_LE(cv::norm(tag.tvec - marker.tvec), 1e-3 * position[2]);
+    EXPECT_LE(test::RotationError(tag.rvec, marker.rvec), 1.0 * kDeg);
+  }
+}
+
 TEST(Synthetic, PnpHonoursProjectionMatrixForRectifiedImages) {
   const sim::Camera camera = test::RoverCamera();
   const sim::Marker marker = sim::FacingCamera(3, 0.15, {-0.2, 0.1, 2.0}, 25.0, 10.0, 0.0);
