@@ -6,3 +6,4 @@
 #include <arucotag/draw.hpp>
 #include <arucotag/pose.hpp>
 #include <arucotag/preprocess.hpp>
+#include <arucotag/refine.hpp>

@@ -247,7 +247,7 @@ void ApplyReconfigure(const ArucotagDetectorConfig& config, DetectorConfig& dete
 
 ArucotagDetectorConfig ToReconfigure(DetectorConfig detector, PreprocessOptions preprocess) {
   ArucotagDetectorConfig config = ArucotagDetectorConfig::__getDefault__();
-  static const char* const kRefinementNames[] = {"none", "subpix", "contour", "apriltag"};
+  static const char* const kRefinementNames[] = {"none", "subpix", "contour", "apriltag", "edge"};
   config.corner_refinement = kRefinementNames[static_cast<int>(detector.corner_refinement)];
   ForEachField(detector, preprocess, [&config](const auto& field, auto& core) { config.*field.live = core.*field.core; });
   return config;

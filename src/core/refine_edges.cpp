@@ -1,0 +1,154 @@
+#include <arucotag/refine.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag {
+
+namespace {
+
+// Bilinear grey value; the caller keeps p at least one pixel inside the image.
+double Sample(const cv::Mat& grey, const cv::Point2d& p) {
+  const int x = static_cast<int>(std::floor(p.x)), y = static_cast<int>(std::floor(p.y));
+  const double fx = p.x - x, fy = p.y - y;
+  const uchar* r0 = grey.ptr<uchar>(y) + x;
+  const uchar* r1 = grey.ptr<uchar>(y + 1) + x;
+  return (1 - fy) * ((1 - fx) * r0[0] + fx * r0[1]) + fy * ((1 - fx) * r1[0] + fx * r1[1]);
+}
+
+// Borders at least this wide (px) leave room for flat dark and light on both sides of a profile.
+constexpr double kPlateauBorder = 5.0;
+
+struct Line {
+  cv::Point2d point, direction;  // direction is unit length
+};
+
+// Sub-pixel points of the edge from `from` (the corner) towards `to`, using the stretch of the edge
+// nearest the corner. `outward` is the unit normal pointing from the marker's black border to the
+// white surround. Fits a line through them; false when too few points were measurable.
+bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to, const cv::Point2d& outward,
+                       double border, Line& line) {
+  // Profiles reach across the edge by less than the black border's width, so they do not run into
+  // the marker's inner bits, but at least 1.2 px so a corner a pixel off is still caught.
+  const double reach = std::clamp(0.8 * border, 1.2, 3.0);
+  const bool use_area = border >= kPlateauBorder;
+  const cv::Point2d along = to - from;
+  const double length = cv::norm(along);
+  const cv::Point2d u = along / length;
+  // Profiles reach across the edge by less than half the border's width, so they never see the
+  // marker's inner bits; they start far enough from the corner not to see the other edge.
+  const double start = reach + 1.0, stop = 0.5 * length;
+  if (stop - start < 2.0) return false;
+  const int count = std::min(24, static_cast<int>(stop - start) + 1);
+  const double step = 0.25;
+  const int half = static_cast<int>(std::ceil(reach / step));
+
+  std::vector<cv::Point2d> points;
+  std::vector<double> profile(2 * half + 1);
+  for (int k = 0; k < count; ++k) {
+    const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
+    const cv::Point2d a = base - outward * (half * step), b = base + outward * (half * step);
+    if (std::min({a.x, b.x, a.y, b.y}) < 0.0 || std::max(a.x, b.x) > grey.cols - 2.0 ||
+        std::max(a.y, b.y) > grey.rows - 2.0) {
+      continue;
+    }
+    for (int i = -half; i <= half; ++i) profile[i + half] = Sample(grey, base + outward * (i * step));
+    const double dark = profile.front(), light = profile.back();
+    if (light - dark < 10.0) continue;  // too little contrast to place an edge
+    // Where the border is wide enough for the profile to reach flat dark and light on both sides,
+    // the edge sits where the area under the normalised profile says: exact for a box-filtered
+    // (pixel-averaged) step, where the halfway crossing of the interpolated profile is off by up
+    // to 0.09 px with the sub-pixel phase. On small markers the profile is too short for that and
+    // the crossing is the better estimate. Exactly one crossing: a second means the profile ran
+    // into something else (inner bits, clutter), and then the crossing nearest the expected edge is
+    // used as well.
+    const double level = 0.5 * (dark + light);
+    int crossings = 0;
+    double area = 0.0, crossing = std::numeric_limits<double>::infinity();
+    for (int i = 0; i + 1 < static_cast<int>(profile.size()); ++i) {
+      if (profile[i] < level && profile[i + 1] >= level) {
+        ++crossings;
+        const double at = (i - half + (level - profile[i]) / (profile[i + 1] - profile[i])) * step;
+        if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
+      } else if (profile[i] >= level && profile[i + 1] < level) {
+        ++crossings;
+      }
+      area += 0.5 * step * ((profile[i] - dark) + (profile[i + 1] - dark)) / (light - dark);
+    }
+    if (!std::isfinite(crossing)) continue;
+    const double offset = use_area && crossings == 1 ? half * step - area : crossing;
+    if (std::abs(offset) < half * step) points.push_back(base + outward * offset);
+  }
+  if (points.size() < 3) return false;
+  cv::Vec4f fitted;
+  std::vector<cv::Point2f> as_float(points.begin(), points.end());
+  cv::fitLine(as_float, fitted, cv::DIST_L2, 0, 0.01, 0.01);
+  line.direction = cv::Point2d(fitted[0], fitted[1]);
+  line.point = cv::Point2d(fitted[2], fitted[3]);
+  return true;
+}
+
+bool Intersect(const Line& a, const Line& b, cv::Point2d& out) {
+  const double denom = a.direction.cross(b.direction);
+  if (std::abs(denom) < 1e-3) return false;  // nearly parallel edges: no stable corner
+  const double s = (b.point - a.point).cross(b.direction) / denom;
+  out = a.point + s * a.direction;
+  return true;
+}
+
+}  // namespace
+
+namespace {
+
+// One pass: every corner whose two edges could be measured moves to their intersection.
+int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
+  // Orientation of the quad, so outward normals point away from the marker whatever the winding.
+  double area = 0.0;
+  for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
+  const double sign = area > 0 ? 1.0 : -1.0;
+  const auto outward_of = [sign](const cv::Point2d& p, const cv::Point2d& q) {
+    const cv::Point2d d = (q - p) / cv::norm(q - p);
+    return cv::Point2d(d.y, -d.x) * sign;  // right of p->q for a positively wound quad
+  };
+  // The black border's width across an edge is one cell of the neighbouring edge (perspective
+  // makes cells narrower on one pair of sides).
+  const auto border_across = [cells](const cv::Point2d& a, const cv::Point2d& b) { return cv::norm(b - a) / cells; };
+
+  std::array<cv::Point2f, 4> refined = corners;
+  int moved = 0;
+  for (int i = 0; i < 4; ++i) {
+    const cv::Point2d c(corners[i]), prev(corners[(i + 3) % 4]), next(corners[(i + 1) % 4]);
+    const double border_next = border_across(prev, c), border_prev = border_across(c, next);
+    Line to_next, to_prev;
+    cv::Point2d p;
+    if (!FitEdgeNearCorner(grey, c, next, outward_of(c, next), border_next, to_next) ||
+        !FitEdgeNearCorner(grey, c, prev, outward_of(prev, c), border_prev, to_prev) || !Intersect(to_next, to_prev, p) ||
+        cv::norm(p - c) > 3.0) {
+      continue;  // keep the detector's corner
+    }
+    refined[i] = cv::Point2f(p);
+    ++moved;
+  }
+  corners = refined;
+  return moved;
+}
+
+}  // namespace
+
+int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
+  CV_Assert(grey.type() == CV_8UC1 && cells >= 3);
+  // A few passes: better corners give better edge directions and profile positions.
+  const std::array<cv::Point2f, 4> start = corners;
+  int moved = 0;
+  for (int pass = 0; pass < 3; ++pass) moved = RefineOnce(grey, corners, cells);
+  for (int i = 0; i < 4; ++i) {
+    if (cv::norm(corners[i] - start[i]) > 4.0) corners[i] = start[i];  // drifted: distrust
+  }
+  return moved;
+}
+
+}  // namespace arucotag
