@@ -23,6 +23,10 @@ double Sample(const cv::Mat& grey, const cv::Point2d& p) {
 // Borders at least this wide (px) leave room for flat dark and light on both sides of a profile.
 constexpr double kPlateauBorder = 5.0;
 
+// Length (px) of edge fitted next to each corner: long enough to average pixel noise, short enough
+// that a distorted (curved) edge is still straight over it.
+constexpr double kFitLength = 20.0;
+
 struct Line {
   cv::Point2d point, direction;  // direction is unit length
 };
@@ -41,7 +45,8 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const cv::Point2d u = along / length;
   // Profiles reach across the edge by less than half the border's width, so they never see the
   // marker's inner bits; they start far enough from the corner not to see the other edge.
-  const double start = reach + 1.0, stop = 0.5 * length;
+  // Only the stretch next to the corner: lens distortion bends long edges.
+  const double start = reach + 1.0, stop = std::min(0.5 * length, start + kFitLength);
   if (stop - start < 2.0) return false;
   const int count = std::min(24, static_cast<int>(stop - start) + 1);
   const double step = 0.25;

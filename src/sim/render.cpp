@@ -5,7 +5,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
+#include <numeric>
 
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
@@ -25,23 +27,33 @@ cv::Mat DistMat(const Camera& cam) {
 
 // Normalized (undistorted) rays for pixel positions. Without distortion the
 // inverse of K is exact; with it, rays are undistorted on the integer pixel
-// grid (-1..w, -1..h) once and bilinearly interpolated in between: the
-// distortion field's curvature over one pixel is ~1e-4 px, far below the
-// 0.01 px budget, and it avoids undistorting 64 samples per pixel.
+// grid covering `region` (plus one pixel each side) once and bilinearly
+// interpolated in between: the distortion field's curvature over one pixel is
+// ~1e-4 px, far below the 0.01 px budget, and it avoids undistorting 64
+// samples per pixel.
 class RayMap {
  public:
-  explicit RayMap(const Camera& cam) : k_inv_(cam.K.inv()), distorted_(HasDistortion(cam)) {
+  RayMap(const Camera& cam, cv::Rect region) : k_inv_(cam.K.inv()), distorted_(HasDistortion(cam)) {
     if (!distorted_) return;
-    gw_ = cam.size.width + 2;
-    gh_ = cam.size.height + 2;
-    std::vector<cv::Point2d> px;
-    px.reserve(static_cast<size_t>(gw_) * gh_);
-    for (int v = -1; v <= cam.size.height; ++v)
-      for (int u = -1; u <= cam.size.width; ++u) px.emplace_back(u, v);
-    // Fixed-point count only (no EPS) so OpenCV skips its per-iteration
-    // reprojection; 40 iterations converge far below 1e-6 px for sane lenses.
-    cv::undistortPoints(px, grid_, cam.K, DistMat(cam), cv::noArray(), cv::noArray(),
-                        cv::TermCriteria(cv::TermCriteria::COUNT, 40, 0));
+    x0_ = region.x - 1;
+    y0_ = region.y - 1;
+    gw_ = region.width + 2;
+    gh_ = region.height + 2;
+    grid_.resize(static_cast<size_t>(gw_) * gh_);
+    const cv::Mat dist = DistMat(cam);
+    // Rows are independent, so chunks run in parallel. Fixed-point count only
+    // (no EPS) so OpenCV skips its per-iteration reprojection; 40 iterations
+    // converge far below 1e-6 px for sane lenses.
+    cv::parallel_for_(cv::Range(0, gh_), [&](const cv::Range& rows) {
+      std::vector<cv::Point2d> px;
+      for (int j = rows.start; j < rows.end; ++j)
+        for (int i = 0; i < gw_; ++i) px.emplace_back(x0_ + i, y0_ + j);
+      cv::Point2d* out = &grid_[static_cast<size_t>(rows.start) * gw_];
+      cv::Mat dst(static_cast<int>(px.size()), 1, CV_64FC2, out);
+      cv::undistortPoints(px, dst, cam.K, dist, cv::noArray(), cv::noArray(),
+                          cv::TermCriteria(cv::TermCriteria::COUNT, 40, 0));
+      CV_Assert(dst.ptr<cv::Point2d>() == out);  // written in place, not reallocated
+    });
   }
 
   // Takes a pixel position inside [-1, w] x [-1, h]; returns (x, y) with ray (x, y, 1).
@@ -50,8 +62,8 @@ class RayMap {
       const cv::Vec3d r = k_inv_ * cv::Vec3d(u, v, 1.0);
       return {r[0] / r[2], r[1] / r[2]};
     }
-    const double gu = std::clamp(u + 1.0, 0.0, gw_ - 1.000001);
-    const double gv = std::clamp(v + 1.0, 0.0, gh_ - 1.000001);
+    const double gu = std::clamp(u - x0_, 0.0, gw_ - 1.000001);
+    const double gv = std::clamp(v - y0_, 0.0, gh_ - 1.000001);
     const int iu = static_cast<int>(gu), iv = static_cast<int>(gv);
     const double fu = gu - iu, fv = gv - iv;
     const cv::Point2d* p = &grid_[static_cast<size_t>(iv) * gw_ + iu];
@@ -64,7 +76,7 @@ class RayMap {
  private:
   cv::Matx33d k_inv_;
   bool distorted_;
-  int gw_ = 0, gh_ = 0;
+  int x0_ = 0, y0_ = 0, gw_ = 0, gh_ = 0;
   std::vector<cv::Point2d> grid_;
 };
 
@@ -94,35 +106,86 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits,
   p.half_side = m.side / 2;
   p.half_outer = p.half_side + quiet_zone * p.cell;
 
-  // Bounding box from points along the outer quad's edges (edges bow under
-  // distortion). Fall back to the whole image when any point is behind the
-  // camera or far outside the field of view, where projection is meaningless.
+  // Bounding box of the outer quad, clipped to the half-space in front of the
+  // camera so markers partly behind it stay cheap, and sampled along its edges
+  // because edges bow under distortion. With distortion, points far outside
+  // the field of view project meaninglessly (the polynomial folds back), so
+  // such markers fall back to the whole image.
   const cv::Rect full(cv::Point(0, 0), cam.size);
-  std::vector<cv::Point3d> edge;
-  const int per_edge = HasDistortion(cam) ? 16 : 1;
+  constexpr double kNear = 1e-4;
   const double h = p.half_outer;
-  const cv::Point2d quad[4] = {{-h, h}, {h, h}, {h, -h}, {-h, -h}};
-  for (int e = 0; e < 4; ++e)
-    for (int i = 0; i < per_edge; ++i) {
-      const cv::Point2d q = quad[e] + (quad[(e + 1) % 4] - quad[e]) * (double(i) / per_edge);
-      edge.emplace_back(q.x, q.y, 0.0);
-    }
-  const double max_tan = 4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
-  for (const auto& q : edge) {
-    const cv::Vec3d pc = r * cv::Vec3d(q.x, q.y, q.z) + m.tvec;
-    if (pc[2] < 1e-6 || std::hypot(pc[0], pc[1]) > max_tan * pc[2]) {
-      p.box = full;
-      return p;
-    }
+  const cv::Vec3d quad[4] = {r * cv::Vec3d(-h, h, 0) + m.tvec, r * cv::Vec3d(h, h, 0) + m.tvec,
+                             r * cv::Vec3d(h, -h, 0) + m.tvec, r * cv::Vec3d(-h, -h, 0) + m.tvec};
+  std::vector<cv::Vec3d> poly;  // Sutherland-Hodgman against z >= kNear
+  for (int e = 0; e < 4; ++e) {
+    const cv::Vec3d& a = quad[e];
+    const cv::Vec3d& b = quad[(e + 1) % 4];
+    if (a[2] >= kNear) poly.push_back(a);
+    if ((a[2] >= kNear) != (b[2] >= kNear)) poly.push_back(a + (b - a) * ((kNear - a[2]) / (b[2] - a[2])));
   }
+  if (poly.empty()) return p;  // entirely behind the camera: empty box
+  const bool distorted = HasDistortion(cam);
+  const int per_edge = distorted ? 16 : 1;
+  const double max_tan = 4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
+  std::vector<cv::Point3d> pts;
+  for (size_t e = 0; e < poly.size(); ++e)
+    for (int i = 0; i < per_edge; ++i) {
+      const cv::Vec3d q = poly[e] + (poly[(e + 1) % poly.size()] - poly[e]) * (double(i) / per_edge);
+      if (distorted && std::hypot(q[0], q[1]) > max_tan * q[2]) {
+        p.box = full;
+        return p;
+      }
+      pts.emplace_back(q[0], q[1], q[2]);
+    }
   std::vector<cv::Point2d> img;
-  cv::projectPoints(edge, m.rvec, m.tvec, cam.K, DistMat(cam), img);
-  const cv::Rect2d b = cv::boundingRect(std::vector<cv::Point2f>(img.begin(), img.end()));
-  const int x0 = static_cast<int>(std::floor(b.x)) - 2, y0 = static_cast<int>(std::floor(b.y)) - 2;
-  const int x1 = static_cast<int>(std::ceil(b.x + b.width)) + 3;
-  const int y1 = static_cast<int>(std::ceil(b.y + b.height)) + 3;
-  p.box = cv::Rect(cv::Point(x0, y0), cv::Point(x1, y1)) & full;
+  cv::projectPoints(pts, cv::Vec3d(), cv::Vec3d(), cam.K, DistMat(cam), img);
+  double x0 = img[0].x, y0 = img[0].y, x1 = x0, y1 = y0;
+  for (const auto& q : img) {
+    x0 = std::min(x0, q.x), x1 = std::max(x1, q.x);
+    y0 = std::min(y0, q.y), y1 = std::max(y1, q.y);
+  }
+  // Clamp in double first: near-plane points project to huge coordinates.
+  auto lo = [](double t, int n) { return static_cast<int>(std::floor(std::clamp(t, -4.0, n + 4.0))) - 2; };
+  auto hi = [](double t, int n) { return static_cast<int>(std::ceil(std::clamp(t, -4.0, n + 4.0))) + 3; };
+  p.box = cv::Rect(cv::Point(lo(x0, cam.size.width), lo(y0, cam.size.height)),
+                   cv::Point(hi(x1, cam.size.width), hi(y1, cam.size.height))) & full;
   return p;
+}
+
+// Sub-pixel sampling: n*n points of a rank-1 lattice {k/N, k*gen/N} (N = n*n)
+// replace the regular n x n grid. All N points have distinct x and distinct
+// y, so axis-aligned edges (frontal markers, the common test case) are
+// resolved to 1/(2N) px instead of 1/(2n) px; the generator maximizing the
+// smallest point spacing keeps every other direction as good as the grid.
+// A per-pixel random (hashed, deterministic) toroidal shift makes each
+// pixel's coverage an unbiased estimate, so the residual error is zero-mean
+// noise that averages out along an edge instead of a systematic edge shift.
+int Rank1Generator(int n2) {
+  int best_gen = 1;
+  double best_d = -1;
+  for (int g = 1; g < n2; ++g) {
+    if (std::gcd(g, n2) != 1) continue;
+    double d = 1e9;
+    for (int k = 1; k < n2; ++k) {
+      double x = double(k) / n2, y = double(static_cast<int64_t>(k) * g % n2) / n2;
+      x = std::min(x, 1 - x);
+      y = std::min(y, 1 - y);
+      d = std::min(d, x * x + y * y);
+    }
+    if (d > best_d) best_d = d, best_gen = g;
+  }
+  return best_gen;
+}
+
+// Deterministic hash of a pixel (and a stream index) to [0, 1).
+double PixelHash(int u, int v, int stream) {
+  uint64_t h = (uint64_t(uint32_t(u)) << 32) ^ uint32_t(v) ^ (uint64_t(stream) << 62);
+  h ^= h >> 33;
+  h *= 0xff51afd7ed558ccdULL;
+  h ^= h >> 33;
+  h *= 0xc4ceb9fe1a85ec53ULL;
+  h ^= h >> 33;
+  return double(h >> 11) * (1.0 / 9007199254740992.0);
 }
 
 // Grey value and depth of the nearest surface along ray (x, y, 1) among the
@@ -134,10 +197,11 @@ bool CastRay(const std::vector<const PreparedMarker*>& cand, double x, double y,
   for (const PreparedMarker* p : cand) {
     const double den = p->h3[0] * x + p->h3[1] * y + p->h3[2];
     if (den == 0.0) continue;
-    const double lam = p->c / den;  // ray parameter == optical z because d_z = 1
+    const double inv_den = 1.0 / den;
+    const double lam = p->c * inv_den;  // ray parameter == optical z because d_z = 1
     if (lam <= 0.0 || lam >= best) continue;
-    const double mx = (p->h1[0] * x + p->h1[1] * y + p->h1[2]) / den;
-    const double my = (p->h2[0] * x + p->h2[1] * y + p->h2[2]) / den;
+    const double mx = (p->h1[0] * x + p->h1[1] * y + p->h1[2]) * inv_den;
+    const double my = (p->h2[0] * x + p->h2[1] * y + p->h2[2]) * inv_den;
     if (std::abs(mx) > p->half_outer || std::abs(my) > p->half_outer) continue;
     best = lam;
     hit = true;
@@ -148,7 +212,7 @@ bool CastRay(const std::vector<const PreparedMarker*>& cand, double x, double y,
     const int col = static_cast<int>(std::floor((mx + p->half_side) / p->cell));
     const int row = static_cast<int>(std::floor((p->half_side - my) / p->cell));
     const bool inside = col >= 0 && row >= 0 && col < p->bits.cols && row < p->bits.rows;
-    *grey = (!inside || p->bits.at<uchar>(row, col)) ? white : black;
+    *grey = (!inside || p->bits.ptr<uchar>(row)[col]) ? white : black;
   }
   *z = best;
   return hit;
@@ -195,12 +259,12 @@ cv::Mat Background(cv::Size size, const RenderOptions& opt) {
   // Safety net against accidental marker look-alikes (permissive detector).
   auto params = cv::aruco::DetectorParameters::create();
   params->minMarkerPerimeterRate = 0.01;
-  std::vector<std::vector<cv::Point2f>> corners, rejected;
+  std::vector<std::vector<cv::Point2f>> corners;
   std::vector<int> ids;
   cv::Mat grey;
   cv::cvtColor(bg, grey, cv::COLOR_BGR2GRAY);
   cv::aruco::detectMarkers(grey, cv::aruco::getPredefinedDictionary(opt.dictionary), corners,
-                           ids, params, rejected);
+                           ids, params);
   for (const auto& q : corners) {
     const cv::Rect r = (cv::boundingRect(q) + cv::Size(8, 8) - cv::Point(4, 4)) &
                        cv::Rect(cv::Point(0, 0), size);
@@ -275,32 +339,39 @@ cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
   }
 
   if (!prep.empty()) {
-    const RayMap rays(cam);
-    const int n = opt.supersample;
-    const double inv_n2 = 1.0 / (n * n);
     cv::Rect all = prep[0].box;
     for (const auto& p : prep) all |= p.box;
+    const RayMap rays(cam, all);
+    const int n2 = opt.supersample * opt.supersample;
+    const double inv_n2 = 1.0 / n2;
+    const int gen = Rank1Generator(n2);
     cv::parallel_for_(cv::Range(all.y, all.y + all.height), [&](const cv::Range& range) {
-      std::vector<const PreparedMarker*> cand;
+      std::vector<const PreparedMarker*> in_row, cand;
       for (int v = range.start; v < range.end; ++v) {
         auto* row = img.ptr<cv::Vec3f>(v);
         auto* zrow = z.ptr<float>(v);
+        in_row.clear();
+        for (const auto& p : prep)
+          if (v >= p.box.y && v < p.box.y + p.box.height) in_row.push_back(&p);
         for (int u = all.x; u < all.x + all.width; ++u) {
           cand.clear();
-          for (const auto& p : prep)
-            if (p.box.contains(cv::Point(u, v))) cand.push_back(&p);
+          for (const PreparedMarker* p : in_row)
+            if (u >= p->box.x && u < p->box.x + p->box.width) cand.push_back(p);
           if (cand.empty()) continue;
           double sum = 0, g = 0, zz = 0;
           int misses = 0;
-          for (int j = 0; j < n; ++j)
-            for (int i = 0; i < n; ++i) {
-              const cv::Vec2d r = rays(u + (i + 0.5) / n - 0.5, v + (j + 0.5) / n - 0.5);
-              if (CastRay(cand, r[0], r[1], opt.background_depth, opt.white_level,
-                          opt.black_level, &g, &zz))
-                sum += g;
-              else
-                ++misses;
-            }
+          // Rank-1 lattice, Cranley-Patterson shifted per pixel (see Rank1Generator).
+          const double sx = n2 > 1 ? PixelHash(u, v, 0) : 0.5, sy = n2 > 1 ? PixelHash(u, v, 1) : 0.5;
+          for (int k = 0, ky = 0; k < n2; ++k, ky = ky + gen < n2 ? ky + gen : ky + gen - n2) {
+            const double fx = k * inv_n2 + sx, fy = ky * inv_n2 + sy;
+            const cv::Vec2d r =
+                rays(u - 0.5 + (fx - std::floor(fx)), v - 0.5 + (fy - std::floor(fy)));
+            if (CastRay(cand, r[0], r[1], opt.background_depth, opt.white_level, opt.black_level,
+                        &g, &zz))
+              sum += g;
+            else
+              ++misses;
+          }
           // Misses keep the background colour; hits are achromatic ink/paper.
           row[u] = row[u] * static_cast<float>(misses * inv_n2) +
                    cv::Vec3f::all(static_cast<float>(sum * inv_n2));
@@ -334,7 +405,7 @@ cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
 
 cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt) {
   CV_Assert(depth.type() == CV_32F && depth.size() == cam.size);
-  const RayMap rays(cam);
+  const RayMap rays(cam, cv::Rect(cv::Point(0, 0), cam.size));
   cv::RNG rng(opt.seed);
   cv::Mat noise(depth.size(), CV_64F, cv::Scalar(0));
   if (opt.depth_noise_sigma > 0)
@@ -393,26 +464,44 @@ Marker FacingCamera(int id, double side, cv::Vec3d position, double yaw_deg, dou
   return m;
 }
 
+Marker FacingRay(int id, double side, cv::Vec3d position, double tilt_deg, double tilt_axis_deg,
+                 double roll_deg) {
+  // Base frame: z towards the camera along the ray, x as close to image right
+  // as possible, y = z x x (up-ish), so tilt 0 means squarely viewed.
+  const cv::Vec3d z = -cv::normalize(position);
+  cv::Vec3d x = cv::Vec3d(1, 0, 0) - z[0] * z;
+  x = cv::norm(x) > 1e-9 ? cv::normalize(x) : cv::Vec3d(0, 1, 0);
+  const cv::Vec3d y = z.cross(x);
+  const cv::Matx33d base(x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2]);
+  cv::Matx33d tilt, roll;
+  const double a = tilt_axis_deg * kDeg;
+  cv::Rodrigues(cv::Vec3d(std::cos(a), std::sin(a), 0) * (tilt_deg * kDeg), tilt);
+  cv::Rodrigues(cv::Vec3d(0, 0, roll_deg * kDeg), roll);
+  Marker m;
+  m.id = id;
+  m.side = side;
+  cv::Rodrigues(base * tilt * roll, m.rvec);
+  m.tvec = position;
+  return m;
+}
+
 Marker RandomMarker(cv::RNG& rng, const Camera& cam, int id, double side, double min_range,
                     double max_range, double max_tilt_deg) {
   for (int attempt = 0; attempt < 200; ++attempt) {
     const double zc = rng.uniform(min_range, max_range);
-    const double u = rng.uniform(0.0, double(cam.size.width)),
-                 v = rng.uniform(0.0, double(cam.size.height));
+    const double u = rng.uniform(0.0, double(cam.size.width));
+    const double v = rng.uniform(0.0, double(cam.size.height));
     const cv::Vec3d ray = cam.K.inv() * cv::Vec3d(u, v, 1.0);
-    // Tilt about a random in-plane axis; uniform in angle, not solid angle,
-    // so strong obliques are well represented.
-    const double axis = rng.uniform(0.0, 360.0), tilt = rng.uniform(0.0, max_tilt_deg);
-    Marker m = FacingCamera(id, side, ray * zc, tilt * std::cos(axis * kDeg),
-                            tilt * std::sin(axis * kDeg), rng.uniform(0.0, 360.0));
+    // Uniform in angle, not solid angle, so strong obliques are well represented.
+    const double tilt = rng.uniform(0.0, max_tilt_deg), axis = rng.uniform(0.0, 360.0);
+    const Marker m = FacingRay(id, side, ray * zc, tilt, axis, rng.uniform(0.0, 360.0));
     Marker big = m;
-    big.side = side * 1.5;  // leaves room for the quiet zone and detector margins
+    big.side = side * 1.5;
+    cv::Matx33d r;
+    cv::Rodrigues(m.rvec, r);
     bool ok = true;
-    for (const auto& c : MarkerCorners3d(big.side)) {
-      cv::Matx33d r;
-      cv::Rodrigues(m.rvec, r);
+    for (const auto& c : MarkerCorners3d(big.side))
       ok &= (r * cv::Vec3d(c.x, c.y, c.z) + m.tvec)[2] > 0.05;
-    }
     if (!ok) continue;
     for (const auto& p : ProjectCorners(cam, big))
       ok &= p.x >= 2 && p.y >= 2 && p.x <= cam.size.width - 3 && p.y <= cam.size.height - 3;
