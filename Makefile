@@ -16,5 +16,9 @@ test: build
 demo: build
 	bash scripts/demo.sh
 
+# Detection benchmark: prints the table and writes $(ARUCOTAG_BUILD)/bench/results.{json,md}.
+bench: build
+	bash bench/run.sh
+
 clean:
 	rm -rf $(ARUCOTAG_BUILD)

@@ -1,4 +1,5 @@
 #include <arucotag/detector.hpp>
+#include <arucotag/refine.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -6,7 +7,11 @@
 
 #include <opencv2/imgproc.hpp>
 
+#include "fast_detect.hpp"
+
 namespace arucotag {
+
+struct Detector::Tracking : internal::TrackingState {};
 
 namespace {
 
@@ -60,6 +65,7 @@ void Validate(const DetectorConfig& c) {
   Require(c.corner_refinement_max_iterations >= 1, "corner_refinement_max_iterations", "must be >= 1");
   Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
           "corner_refinement_min_accuracy", "must be > 0");
+  Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
   Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
   for (const auto& [id, side] : c.side_lengths) {
     Require(Finite(side) && side > 0.0, "side_lengths",
@@ -76,6 +82,7 @@ int ToOpenCv(CornerRefinement refinement) {
     case CornerRefinement::kApriltag:
       return cv::aruco::CORNER_REFINE_APRILTAG;
     case CornerRefinement::kNone:
+    case CornerRefinement::kEdge:  // refined by the core after cv::aruco
       break;
   }
   return cv::aruco::CORNER_REFINE_NONE;
@@ -88,7 +95,8 @@ CornerRefinement CornerRefinementFromName(const std::string& name) {
   if (name == "subpix") return CornerRefinement::kSubpix;
   if (name == "contour") return CornerRefinement::kContour;
   if (name == "apriltag") return CornerRefinement::kApriltag;
-  throw Error("unknown corner refinement '" + name + "' (valid: none, subpix, contour, apriltag)");
+  if (name == "edge") return CornerRefinement::kEdge;
+  throw Error("unknown corner refinement '" + name + "' (valid: none, subpix, contour, apriltag, edge)");
 }
 
 const std::vector<std::string>& DictionaryNames() { return kDictionaryNames; }
@@ -104,7 +112,7 @@ int DictionaryFromName(const std::string& name) {
   return static_cast<int>(it - kDictionaryNames.begin());
 }
 
-Detector::Detector(const DetectorConfig& config) : config_(config) {
+Detector::Detector(const DetectorConfig& config) : config_(config), tracking_(std::make_unique<Tracking>()) {
   Validate(config_);
   dictionary_ = cv::aruco::getPredefinedDictionary(DictionaryFromName(config_.dictionary));
   parameters_ = cv::aruco::DetectorParameters::create();
@@ -132,6 +140,43 @@ Detector::Detector(const DetectorConfig& config) : config_(config) {
   p.detectInvertedMarker = config_.detect_inverted_marker;
 }
 
+Detector::Detector(const Detector& other)
+    : config_(other.config_),
+      dictionary_(other.dictionary_),
+      parameters_(other.parameters_),
+      tracking_(std::make_unique<Tracking>()) {}
+
+Detector& Detector::operator=(const Detector& other) {
+  if (this != &other) {
+    config_ = other.config_;
+    dictionary_ = other.dictionary_;
+    parameters_ = other.parameters_;
+    tracking_ = std::make_unique<Tracking>();
+  }
+  return *this;
+}
+
+Detector::Detector(Detector&& other) noexcept = default;
+Detector& Detector::operator=(Detector&& other) noexcept = default;
+Detector::~Detector() = default;
+
+void Detector::ResetTracking() const {
+  if (!tracking_) return;
+  std::lock_guard<std::mutex> lock(tracking_->mutex);
+  tracking_->markers.clear();
+  tracking_->thumbnail.release();
+  tracking_->frames = 0;
+}
+
+Detector::TrackingStats Detector::tracking_stats() const {
+  TrackingStats stats;
+  if (!tracking_) return stats;
+  std::lock_guard<std::mutex> lock(tracking_->mutex);
+  stats.full_searches = tracking_->full_searches;
+  stats.tracked_frames = tracking_->tracked_frames;
+  return stats;
+}
+
 double Detector::SideLength(int id) const {
   const auto it = config_.side_lengths.find(id);
   return it == config_.side_lengths.end() ? config_.default_side_length : it->second;
@@ -155,19 +200,36 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
   if (frame.channels() == 3) {
     cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
   }
-  std::vector<std::vector<cv::Point2f>> corners;
-  std::vector<int> ids;
-  cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, detector.parameters());
-
   std::vector<ArucoTag> tags;
-  tags.reserve(ids.size());
-  for (size_t i = 0; i < ids.size(); ++i) {
-    if (!detector.Accepts(ids[i])) continue;
+  const auto add = [&](int id, const cv::Point2f* corners) {
+    if (!detector.Accepts(id)) return;
     ArucoTag tag;
-    tag.id = ids[i];
-    std::copy_n(corners[i].begin(), 4, tag.corners.begin());
+    tag.id = id;
+    std::copy_n(corners, 4, tag.corners.begin());
     tag.side_length = detector.SideLength(tag.id);
     tags.push_back(tag);
+  };
+  if (internal::FastPathSupports(detector.config())) {
+    // A moved-from Detector has no tracking state: it still detects, frame by frame.
+    for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
+                                                  *detector.parameters(), detector.tracking_.get())) {
+      add(found.id, found.corners.data());
+    }
+  } else {
+    std::vector<std::vector<cv::Point2f>> corners;
+    std::vector<int> ids;
+    // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
+    // copy so concurrent calls on one Detector never race.
+    const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
+    cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters);
+    for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
+  }
+  if (detector.config().corner_refinement == CornerRefinement::kEdge) {
+    // Tags are independent: refine them on all cores (tens of microseconds each).
+    const int cells = detector.dictionary()->markerSize + 2 * detector.config().marker_border_bits;
+    cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
+      for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+    });
   }
   return tags;
 }

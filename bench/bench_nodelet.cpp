@@ -1,0 +1,273 @@
+// bench_nodelet: (d) of the benchmark, the detector nodelet end to end inside a nodelet manager.
+// Loads arucotag/DetectorNodelet in this process with nodelet::Loader, publishes the benchmark's
+// frames (bgr8 sensor_msgs/Image + camera_info with the same stamp) by shared pointer, so roscpp
+// hands them over without serialising, and times from publish() to the arrival of the tags with
+// that stamp. The same frames also go through (c), the core pipeline the nodelet runs
+// (PreprocessFrame + Detect + EstimatePoseFromPNP), alternating with (d) frame by frame in this
+// process, so the nodelet's overhead is measured under the same load. Writes JSON rows for
+// bench/report.py. Needs a ROS master (bench/run.sh starts one).
+//
+//   bench_nodelet --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100] [--reps 5]
+#include <arucotag/ros/messages.hpp>  // first: renames the generated ArucoTag message
+
+#include <algorithm>
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
+#include <ctime>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <cv_bridge/cv_bridge.h>
+#include <nodelet/loader.h>
+#include <ros/ros.h>
+#include <sensor_msgs/CameraInfo.h>
+#include <sensor_msgs/Image.h>
+
+#include <arucotag/arucotag.hpp>
+
+#include "frames.hpp"
+
+namespace arucotag::bench {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr const char* kNamespace = "/arucotag_bench";
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  const double pos = q * (v.size() - 1);
+  const size_t i = static_cast<size_t>(pos);
+  return i + 1 < v.size() ? v[i] + (pos - i) * (v[i + 1] - v[i]) : v[i];
+}
+
+double CpuMs() {
+  timespec t{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return t.tv_sec * 1e3 + t.tv_nsec * 1e-6;
+}
+
+// The tags messages as they arrive, by stamp, with their arrival time.
+class TagsWaiter {
+ public:
+  void Add(const ArucoTagArrayConstPtr& msg) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      arrived_[msg->header.stamp] = {Clock::now(), msg};
+    }
+    cv_.notify_all();
+  }
+  bool Wait(const ros::Time& stamp, double timeout_s, Clock::time_point& at, ArucoTagArrayConstPtr& msg) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    const bool ok = cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] { return arrived_.count(stamp) > 0; });
+    if (!ok) return false;
+    at = arrived_[stamp].first;
+    msg = arrived_[stamp].second;
+    arrived_.erase(stamp);
+    return true;
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::map<ros::Time, std::pair<Clock::time_point, ArucoTagArrayConstPtr>> arrived_;
+};
+
+sensor_msgs::CameraInfoPtr Info(const CameraModel& camera, const cv::Size& size) {
+  auto info = boost::make_shared<sensor_msgs::CameraInfo>();
+  info->header.frame_id = "bench_optical";
+  info->width = size.width;
+  info->height = size.height;
+  info->distortion_model = "plumb_bob";
+  info->D = camera.distortion.empty() ? std::vector<double>(5, 0.0) : camera.distortion;
+  for (int i = 0; i < 9; ++i) info->K[i] = camera.K.val[i];
+  info->R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) info->P[r * 4 + c] = camera.K(r, c);
+  }
+  return info;
+}
+
+struct Row {
+  std::string name;
+  std::vector<double> wall, cpu, core_wall;  // (d), and (c) side by side
+  int found = 0, expected = 0, false_positives = 0, lost = 0;
+};
+
+int Main(int argc, char** argv) {
+  std::string data = "test/data", cache = "/tmp/arucotag_bench_frames", json = "nodelet.json";
+  int frames = 6, sequence_frames = 100, reps = 5;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    const auto next = [&]() -> std::string {
+      if (i + 1 >= argc) throw Error("missing value after " + arg);
+      return argv[++i];
+    };
+    if (arg == "--data") data = next();
+    else if (arg == "--cache") cache = next();
+    else if (arg == "--json") json = next();
+    else if (arg == "--frames") frames = std::stoi(next());
+    else if (arg == "--sequence-frames") sequence_frames = std::stoi(next());
+    else if (arg == "--reps") reps = std::stoi(next());
+    else throw Error("unknown option " + arg);
+  }
+  if (!ros::master::check()) throw Error("no ROS master at " + ros::master::getURI() + " (bench/run.sh starts one)");
+
+  std::vector<FrameSet> sets = RealSets(data);
+  for (auto& s : SyntheticSets(cache, frames, sequence_frames)) sets.push_back(std::move(s));
+
+  ros::NodeHandle nh;
+  const std::string detector = std::string(kNamespace) + "/detector";
+  // ExactTime: camera_info goes out first with the image's stamp, so the set is complete the
+  // moment the image arrives (ApproximateTime would hold each set until the next frame).
+  ros::param::set(detector + "/approximate_sync", false);
+  ros::param::set(detector + "/queue_size", 5);
+  // The core's default refinement, whatever the nodelet would pick without a yaml: (c) and (d) must
+  // run the same pipeline.
+  const char* refinement[] = {"none", "subpix", "contour", "apriltag", "edge"};
+  ros::param::set(detector + "/corner_refinement",
+                  std::string(refinement[static_cast<int>(DetectorConfig().corner_refinement)]));
+
+  TagsWaiter waiter;
+  ros::Subscriber tags_sub = nh.subscribe<ArucoTagArray>(std::string(kNamespace) + "/tags", 20,
+                                                         [&](const ArucoTagArrayConstPtr& msg) { waiter.Add(msg); });
+  ros::Publisher image_pub = nh.advertise<sensor_msgs::Image>(std::string(kNamespace) + "/image", 5);
+  ros::Publisher info_pub = nh.advertise<sensor_msgs::CameraInfo>(std::string(kNamespace) + "/camera_info", 5);
+  ros::AsyncSpinner spinner(1);
+  spinner.start();
+
+  nodelet::Loader loader(false);  // in this process, no load/unload services
+  if (!loader.load(detector, "arucotag/DetectorNodelet", {}, {})) throw Error("cannot load arucotag/DetectorNodelet");
+  for (int i = 0; i < 200 && (image_pub.getNumSubscribers() == 0 || info_pub.getNumSubscribers() == 0 ||
+                              tags_sub.getNumPublishers() == 0);
+       ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  if (image_pub.getNumSubscribers() == 0) throw Error("the nodelet did not subscribe to " + image_pub.getTopic());
+
+  std::vector<Row> rows;
+  double stamp_s = 1000.0;
+  std::string loaded = "DICT_4X4_50 0.150000";  // what the first load read (defaults)
+  for (const FrameSet& set : sets) {
+    // Dictionary and size are read when the nodelet loads: reload it when a set needs others.
+    const std::string wanted = set.dictionary + " " + std::to_string(set.side_length);
+    if (wanted != loaded) {
+      ros::param::set(detector + "/dictionary", set.dictionary);
+      ros::param::set(detector + "/tag_size", set.side_length);
+      loader.unload(detector);
+      if (!loader.load(detector, "arucotag/DetectorNodelet", {}, {})) throw Error("cannot reload the nodelet");
+      loaded = wanted;
+      for (int i = 0; i < 200 && image_pub.getNumSubscribers() == 0; ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      }
+    }
+    Row row;
+    row.name = set.name;
+    // Messages are made before timing: a camera driver hands over a filled message.
+    std::vector<sensor_msgs::ImagePtr> images;
+    std::vector<sensor_msgs::CameraInfoPtr> infos;
+    for (const Frame& f : set.frames) {
+      std_msgs::Header header;
+      header.frame_id = "bench_optical";
+      images.push_back(cv_bridge::CvImage(header, "bgr8", f.bgr).toImageMsg());
+      infos.push_back(Info(set.camera, f.bgr.size()));
+    }
+    // (c) as the nodelet runs it: one Detector for the whole stream, as configured there.
+    DetectorConfig config;
+    config.dictionary = set.dictionary;
+    config.default_side_length = set.side_length;
+    const Detector core(config);
+    const auto run_core = [&](const Frame& f) {
+      const Clock::time_point c0 = Clock::now();
+      cv::Mat grey;
+      PreprocessFrame(f.bgr, grey);
+      std::vector<ArucoTag> tags = Detect(grey, core);
+      for (auto& tag : tags) EstimatePoseFromPNP(set.camera, tag);
+      return std::chrono::duration<double, std::milli>(Clock::now() - c0).count();
+    };
+    const int passes = set.sequence ? std::max(1, reps / 2) : reps;
+    for (int rep = -1; rep < passes; ++rep) {  // rep -1 warms up (first frame only)
+      for (size_t k = 0; k < set.frames.size(); ++k) {
+        stamp_s += 0.1;
+        const ros::Time stamp(stamp_s);
+        // A fresh message per publish: subscribers get const pointers and may keep them.
+        auto image = boost::make_shared<sensor_msgs::Image>(*images[k]);
+        auto info = boost::make_shared<sensor_msgs::CameraInfo>(*infos[k]);
+        image->header.stamp = info->header.stamp = stamp;
+        const double c0 = CpuMs();
+        const Clock::time_point t0 = Clock::now();
+        info_pub.publish(info);
+        image_pub.publish(image);
+        Clock::time_point at;
+        ArucoTagArrayConstPtr msg;
+        if (!waiter.Wait(stamp, 5.0, at, msg)) {
+          ++row.lost;
+          continue;
+        }
+        if (rep < 0) break;
+        row.wall.push_back(std::chrono::duration<double, std::milli>(at - t0).count());
+        row.cpu.push_back(CpuMs() - c0);
+        row.core_wall.push_back(run_core(set.frames[k]));
+        if (rep == 0) {
+          std::vector<int> ids;
+          std::vector<std::array<cv::Point2f, 4>> corners;
+          for (const auto& t : msg->tags) {
+            ids.push_back(t.id);
+            std::array<cv::Point2f, 4> q;
+            for (int c = 0; c < 4; ++c) q[c] = cv::Point2f(t.corners[c].x, t.corners[c].y);
+            corners.push_back(q);
+          }
+          const Score s = ScoreFrame(set.frames[k], ids, corners);
+          row.found += s.found;
+          row.expected += s.expected;
+          row.false_positives += s.false_positives;
+        }
+      }
+    }
+    std::fprintf(stderr, "  %-28s d %7.2f ms median, (c) alongside %7.2f ms (%zu frames timed, %d lost)\n",
+                 set.name.c_str(), Percentile(row.wall, 0.5), Percentile(row.core_wall, 0.5), row.wall.size(), row.lost);
+    rows.push_back(row);
+  }
+  loader.unload(detector);
+  spinner.stop();
+
+  std::ofstream out(json);
+  out.precision(6);
+  out << "{\n  \"tool\": \"bench_nodelet\",\n  \"note\": \"arucotag/DetectorNodelet loaded with nodelet::Loader in the benchmark "
+         "process; bgr8 image + camera_info published by shared pointer (no serialisation), ExactTime sync; time from "
+         "publish() to the tags message arriving at a subscriber in the same process\",\n  \"sets\": [\n";
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const Row& r = rows[i];
+    double mean = 0.0;
+    for (double w : r.wall) mean += w / std::max<size_t>(1, r.wall.size());
+    out << "    {\"name\": \"" << r.name << "\", \"method\": {\"label\": \"(d) nodelet in a manager, publish to tags\", "
+        << "\"median_ms\": " << Percentile(r.wall, 0.5) << ", \"p90_ms\": " << Percentile(r.wall, 0.9)
+        << ", \"mean_ms\": " << mean << ", \"cpu_median_ms\": " << Percentile(r.cpu, 0.5) << ", \"calls\": " << r.wall.size()
+        << ", \"lost\": " << r.lost << ", \"found\": " << r.found << ", \"expected\": " << r.expected
+        << ", \"false_positives\": " << r.false_positives << "}, \"core_side_by_side\": {\"median_ms\": "
+        << Percentile(r.core_wall, 0.5) << ", \"p90_ms\": " << Percentile(r.core_wall, 0.9) << "}}"
+        << (i + 1 < rows.size() ? "," : "") << "\n";
+  }
+  out << "  ]\n}\n";
+  std::fprintf(stderr, "bench_nodelet: wrote %s\n", json.c_str());
+  return 0;
+}
+
+}  // namespace
+}  // namespace arucotag::bench
+
+int main(int argc, char** argv) {
+  ros::init(argc, argv, "arucotag_bench_nodelet", ros::init_options::NoSigintHandler);
+  try {
+    return arucotag::bench::Main(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "bench_nodelet: %s\n", e.what());
+    return 1;
+  }
+}

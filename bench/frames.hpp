@@ -1,0 +1,68 @@
+// Frame sets of the detection benchmark: the real photos with their published answers, rendered
+// cluttered scenes at three resolutions and four tag counts, and a rendered sequence of a camera
+// driving past markers. Rendered sets are written once to a cache folder and read back afterwards,
+// so every benchmark run times exactly the same pixels.
+#pragma once
+
+#include <array>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include <arucotag/pose.hpp>
+
+namespace arucotag::bench {
+
+/// One marker a detector is expected to report.
+struct Truth {
+  int id = -1;
+  bool has_corners = false;             ///< false: the source publishes the id only
+  std::array<cv::Point2f, 4> corners{};  ///< TL TR BR BL, px
+};
+
+struct Frame {
+  std::string name;
+  cv::Mat bgr;   ///< as loaded or rendered (8-bit BGR)
+  cv::Mat grey;  ///< PreprocessFrame(bgr) with default options, what (a) and (b) receive
+  std::vector<Truth> truth;
+  /// Ids that are in view but not expected (partly outside the frame, or hidden on purpose): a
+  /// detector reporting them is neither rewarded nor counted as a false positive.
+  std::vector<int> ignore;
+};
+
+struct FrameSet {
+  std::string name;
+  std::string dictionary;
+  double side_length = 0.15;  ///< m, for the pose step
+  CameraModel camera;
+  bool sequence = false;  ///< frames are consecutive: run them in order, carrying tracking state
+  std::vector<Frame> frames;
+};
+
+/// Loads the five real photos of test/data (two sets: 640x480 tutorial photos, 1280x960 Raspberry
+/// Pi photos). Throws arucotag::Error when a file is missing.
+std::vector<FrameSet> RealSets(const std::string& data_dir);
+
+/// Rendered sets: {640x480, 1280x720, 1920x1080} x {1, 5, 20, 50} tags, `frames` scenes each, plus
+/// the tracked sequence (`sequence_frames` frames at 1280x720). Read from `cache_dir` when present
+/// and written there otherwise.
+std::vector<FrameSet> SyntheticSets(const std::string& cache_dir, int frames, int sequence_frames);
+
+/// The tracked sequence alone, rendered in memory (unit tests use it; the benchmark caches it).
+/// Markers enter and leave the field of view as the camera moves; `appear_frame` returns, per
+/// marker id, the first frame where it is fully in view.
+FrameSet RenderSequence(int frames, std::vector<std::pair<int, int>>* appear_frame = nullptr);
+
+/// Matches detections against a frame's truth: a truth marker counts as found when a detection
+/// with its id has its centre within max(3 px, a quarter of the marker's side) of the true centre
+/// (the id alone when the truth has no corners). Corner accuracy is measured separately: a
+/// detection at the right place with the right id is found, however well its corners are refined.
+/// Detections of other ids, or far from the truth, are false positives unless listed in `ignore`.
+struct Score {
+  int expected = 0, found = 0, false_positives = 0;
+};
+Score ScoreFrame(const Frame& frame, const std::vector<int>& ids,
+                 const std::vector<std::array<cv::Point2f, 4>>& corners);
+
+}  // namespace arucotag::bench

@@ -1,0 +1,16 @@
+# Detection benchmark, `make bench` (bench/run.sh): frame sets rendered once into the build folder,
+# (a)-(c) timed by bench_detect (core only), (d) by bench_nodelet (the nodelet in a manager).
+add_library(arucotag_bench_frames STATIC bench/frames.cpp)
+target_link_libraries(arucotag_bench_frames PUBLIC arucotag_sim arucotag_core)
+
+add_executable(bench_detect bench/bench_detect.cpp)
+target_link_libraries(bench_detect arucotag_bench_frames)
+
+if(TARGET arucotag_nodelet)
+  add_executable(bench_nodelet bench/bench_nodelet.cpp)
+  target_include_directories(bench_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(bench_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(bench_nodelet arucotag_bench_frames ${catkin_LIBRARIES})
+  # It loads the plugin at run time; build it with the benchmark.
+  add_dependencies(bench_nodelet arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+endif()

@@ -1,0 +1,73 @@
+// The fast path behind Detect (internal to arucotag_core): a multi-scale candidate search whose
+// candidates are decoded and refined at full resolution exactly as cv::aruco does it, plus the
+// frame-to-frame tracking that restricts where the next frame is searched.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <mutex>
+#include <vector>
+
+#include <opencv2/aruco.hpp>
+#include <opencv2/core.hpp>
+
+#include <arucotag/aruco_tag.hpp>
+#include <arucotag/detector.hpp>
+
+namespace arucotag::internal {
+
+/// A square candidate in full-resolution pixels, corners clockwise as cv::aruco orders them.
+struct Quad {
+  std::array<cv::Point2f, 4> corners{};
+  int level = 0;      ///< pyramid level it was found at (0 = full resolution)
+  float area = 0.0f;  ///< px^2, full resolution
+  int perimeter = 0;  ///< contour length at its level, px
+};
+
+/// A marker found in a frame, before the id lists are applied.
+struct Found {
+  int id = -1;
+  std::array<cv::Point2f, 4> corners{};
+};
+
+/// What one frame leaves for the next.
+struct TrackedMarker {
+  int id = -1;
+  std::array<cv::Point2f, 4> corners{};
+  cv::Point2f velocity{0.0f, 0.0f};  ///< px/frame of the centre
+  int missed = 0;  ///< frames since it was last found (its region is searched a while longer)
+};
+
+struct TrackingState {
+  std::mutex mutex;  ///< guards everything below; held only to copy in and out, never while detecting
+  cv::Size size;
+  std::vector<TrackedMarker> markers;
+  cv::Mat thumbnail;       ///< tiny copy of the last frame, to notice an unrelated image
+  int strip = 0;           ///< next rolling strip of the discovery search
+  std::uint64_t frames = 0;
+  // Counters for tests and the benchmark.
+  std::uint64_t full_searches = 0, tracked_frames = 0;
+};
+
+/// Statistics of one call, for tests and the benchmark.
+struct FrameReport {
+  bool full_search = false;  ///< the whole frame was searched at every scale
+  int candidates = 0;        ///< quads decoded
+  int searched_pixels = 0;   ///< pixels thresholded and traced (at their pyramid level's resolution)
+};
+
+/// Whether the fast path serves this configuration: black markers with the edge-fit (kEdge) or
+/// sub-pixel (kSubpix) refinement. Other refinements and inverted markers go through
+/// cv::aruco::detectMarkers unchanged.
+bool FastPathSupports(const DetectorConfig& config);
+
+/// Runs the fast path on an 8-bit grey frame. Returns each marker's id and corners in cv::aruco
+/// order: refined for kSubpix; for kEdge the corners cv::aruco would hand to refinement (Detect
+/// applies the edge fit). With `state` non-null and config.tracking on, uses and updates the
+/// markers tracked from the previous frame; `report` is optional.
+std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
+                              const cv::Ptr<cv::aruco::Dictionary>& dictionary,
+                              const cv::aruco::DetectorParameters& parameters, TrackingState* state,
+                              FrameReport* report = nullptr);
+
+}  // namespace arucotag::internal

@@ -1,0 +1,193 @@
+// The fast path (DetectorConfig::fast_path, on by default) against the full search it replaces
+// (cv::aruco::detectMarkers with the same configuration): same ids and corners on the real photos,
+// and tracking that restricts where a frame is searched, not what is found there.
+#include <algorithm>
+#include <cstdio>
+#include <map>
+#include <set>
+#include <string>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+
+#include "scene.hpp"
+
+namespace arucotag {
+namespace {
+
+cv::Mat LoadGrey(const std::string& relative) {
+  const cv::Mat image = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + relative, cv::IMREAD_UNCHANGED);
+  EXPECT_FALSE(image.empty()) << relative;
+  cv::Mat grey;
+  PreprocessFrame(image, grey);
+  return grey;
+}
+
+std::multiset<int> Ids(const std::vector<ArucoTag>& tags) {
+  std::multiset<int> ids;
+  for (const auto& t : tags) ids.insert(t.id);
+  return ids;
+}
+
+const ArucoTag* Find(const std::vector<ArucoTag>& tags, int id) {
+  const auto it = std::find_if(tags.begin(), tags.end(), [id](const ArucoTag& t) { return t.id == id; });
+  return it == tags.end() ? nullptr : &*it;
+}
+
+double MaxCornerDifference(const ArucoTag& a, const ArucoTag& b) {
+  double worst = 0.0;
+  for (int i = 0; i < 4; ++i) worst = std::max(worst, cv::norm(cv::Point2d(a.corners[i]) - cv::Point2d(b.corners[i])));
+  return worst;
+}
+
+// Every marker the full search reports, with its corners within `tolerance` px; nothing else.
+void ExpectSameAsFullSearch(const std::vector<ArucoTag>& fast, const std::vector<ArucoTag>& full, double tolerance,
+                            const std::string& what) {
+  ASSERT_EQ(Ids(fast), Ids(full)) << what;
+  for (const auto& f : full) {
+    const ArucoTag* q = Find(fast, f.id);
+    ASSERT_NE(q, nullptr) << what << " id " << f.id;
+    EXPECT_LE(MaxCornerDifference(*q, f), tolerance) << what << " id " << f.id;
+  }
+}
+
+struct Photo {
+  std::string file, dictionary;
+  size_t markers;
+};
+
+const std::vector<Photo> kPhotos = {
+    {"opencv_tutorial/singlemarkersoriginal.jpg", "DICT_6X6_250", 6},
+    {"opencv_tutorial/choriginal.jpg", "DICT_6X6_250", 17},
+    {"opencv_tutorial/chocclusion_original.jpg", "DICT_6X6_250", 13},
+    {"ubiquity_fiducials/tag_01_d7_14cm.png", "DICT_5X5_1000", 1},
+    {"ubiquity_fiducials/tag_245-246_d7_14cm.png", "DICT_5X5_1000", 2},
+};
+
+// The default refinement (edge fit) and cv::aruco's sub-pixel one, both supported by the fast path.
+TEST(FastPath, RealPhotosSameIdsAndCornersAsTheFullSearch) {
+  for (const auto refinement : {DetectorConfig().corner_refinement, CornerRefinement::kSubpix}) {
+    for (const auto& photo : kPhotos) {
+      DetectorConfig config;
+      config.dictionary = photo.dictionary;
+      config.corner_refinement = refinement;
+      config.tracking = false;
+      DetectorConfig reference = config;
+      reference.fast_path = false;
+      const cv::Mat grey = LoadGrey(photo.file);
+      const auto fast = Detect(grey, Detector(config));
+      const auto full = Detect(grey, Detector(reference));
+      EXPECT_EQ(full.size(), photo.markers) << photo.file;
+      ExpectSameAsFullSearch(fast, full, 0.1, photo.file + " refinement " + std::to_string(static_cast<int>(refinement)));
+    }
+  }
+}
+
+// A static rover camera watching three markers; `extra` joins from `appear` on.
+struct Sequence {
+  sim::Camera camera = test::RoverCamera();
+  std::vector<sim::Marker> markers = {sim::FacingCamera(3, 0.15, {-0.9, -0.2, 3.0}, 20.0, 0.0, 10.0),
+                                      sim::FacingCamera(17, 0.15, {0.8, 0.25, 4.0}, -30.0, 10.0, 100.0),
+                                      sim::FacingCamera(29, 0.15, {0.1, -0.35, 2.5}, 0.0, -25.0, 200.0)};
+
+  cv::Mat Frame(int k, const sim::Marker& extra, int appear) const {
+    std::vector<sim::Marker> all = markers;
+    if (k >= appear) all.push_back(extra);
+    sim::RenderOptions options;
+    options.seed = 5;  // the same clutter every frame: one scene
+    options.noise_sigma = 2.0;
+    options.blur_sigma = 0.5;
+    cv::Mat grey;
+    PreprocessFrame(sim::RenderScene(camera, all, options), grey);
+    return grey;
+  }
+};
+
+// A marker that appears inside the frame (not from an edge) while the others are tracked is found
+// within full_search_interval frames; every other frame gives the full search's ids and corners.
+TEST(FastPath, NewMarkerFoundWithinTheFullSearchInterval) {
+  const Sequence sequence;
+  // About 22 px wide at 7 m: below the size the coarse level sees on every frame.
+  const sim::Marker small = sim::FacingCamera(41, 0.15, {0.3, 0.6, 7.0}, 15.0, 0.0, 30.0);
+  const int appear = 3;
+  const Detector detector;  // defaults: fast path, tracking
+  DetectorConfig full_config;
+  full_config.fast_path = false;
+  const Detector full(full_config);
+  const int interval = detector.config().full_search_interval;
+  int found_at = -1;
+  for (int k = 0; k < appear + interval + 1; ++k) {
+    const cv::Mat grey = sequence.Frame(k, small, appear);
+    const auto tags = Detect(grey, detector);
+    const auto reference = Detect(grey, full);
+    ASSERT_EQ(Find(reference, 41) != nullptr, k >= appear) << "frame " << k << ": the scene is not what the test expects";
+    if (found_at < 0 && Find(tags, 41)) found_at = k;
+    // Apart from the newcomer before it is found: exactly the full search's answer.
+    std::vector<ArucoTag> expected = reference;
+    if (found_at < 0) {
+      expected.erase(std::remove_if(expected.begin(), expected.end(), [](const ArucoTag& t) { return t.id == 41; }),
+                     expected.end());
+    }
+    ExpectSameAsFullSearch(tags, expected, 0.01, "frame " + std::to_string(k));
+  }
+  EXPECT_GE(detector.tracking_stats().tracked_frames, static_cast<unsigned long long>(appear))
+      << "tracking never engaged: the test would prove nothing";
+  ASSERT_GE(found_at, appear) << "marker 41 never found";
+  std::printf("new marker found %d frame(s) after it appeared (bound %d)\n", found_at - appear, interval - 1);
+  EXPECT_LT(found_at, appear + interval) << "found " << found_at - appear << " frames after it appeared";
+}
+
+// A large marker is seen at the coarse level, which covers every frame: found at once.
+TEST(FastPath, NewLargeMarkerFoundAtOnce) {
+  const Sequence sequence;
+  const sim::Marker large = sim::FacingCamera(44, 0.15, {0.35, 0.05, 1.6}, 0.0, 20.0, 0.0);  // about 95 px
+  const Detector detector;
+  for (int k = 0; k < 4; ++k) {
+    const auto tags = Detect(sequence.Frame(k, large, 2), detector);
+    EXPECT_EQ(Find(tags, 44) != nullptr, k >= 2) << "frame " << k;
+  }
+  EXPECT_GE(detector.tracking_stats().tracked_frames, 2u);
+}
+
+// Another scene after a tracked one (a cut, or unrelated images through one Detector) is searched
+// whole on its first frame.
+TEST(FastPath, UnrelatedImageAfterTrackedFramesIsSearchedWhole) {
+  const Sequence sequence;
+  const sim::Marker none = sim::FacingCamera(0, 0.15, {0.0, 0.0, -5.0});  // behind the camera: never seen
+  const Detector detector;
+  for (int k = 0; k < 3; ++k) Detect(sequence.Frame(k, none, 100), detector);
+
+  const sim::Camera camera = test::RoverCamera();
+  const std::vector<sim::Marker> others = {sim::FacingCamera(8, 0.15, {-0.5, 0.1, 5.0}),
+                                           sim::FacingCamera(12, 0.15, {0.6, -0.3, 6.5}, 25.0)};
+  sim::RenderOptions options;
+  options.seed = 9;
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, others, options), grey);
+  DetectorConfig cold_config;
+  cold_config.tracking = false;
+  ExpectSameAsFullSearch(Detect(grey, detector), Detect(grey, Detector(cold_config)), 0.0, "first frame after the cut");
+  EXPECT_EQ(Ids(Detect(grey, Detector(cold_config))), (std::multiset<int>{8, 12}));
+}
+
+TEST(FastPath, CopiesAndResetStartWithoutTrackedMarkers) {
+  const Sequence sequence;
+  const sim::Marker none = sim::FacingCamera(0, 0.15, {0.0, 0.0, -5.0});
+  Detector detector;
+  for (int k = 0; k < 2; ++k) Detect(sequence.Frame(k, none, 100), detector);
+  EXPECT_EQ(detector.tracking_stats().tracked_frames, 1u);
+  const Detector copy(detector);
+  EXPECT_EQ(copy.tracking_stats().tracked_frames + copy.tracking_stats().full_searches, 0u);
+  detector.ResetTracking();
+  Detect(sequence.Frame(2, none, 100), detector);
+  EXPECT_EQ(detector.tracking_stats().full_searches, 2u);  // the first frame and the one after the reset
+}
+
+TEST(FastPath, BadIntervalIsRejected) {
+  DetectorConfig config;
+  config.full_search_interval = 0;
+  EXPECT_THROW(Detector{config}, Error);
+}
+
+}  // namespace
+}  // namespace arucotag
