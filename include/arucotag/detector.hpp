@@ -21,6 +21,9 @@ enum class CornerRefinement { kNone, kSubpix, kContour, kApriltag, kEdge };
 /// Parses "none", "subpix", "contour", "apriltag" or "edge"; throws arucotag::Error otherwise.
 CornerRefinement CornerRefinementFromName(const std::string& name);
 
+/// The name CornerRefinementFromName parses back to `refinement`.
+const char* CornerRefinementName(CornerRefinement refinement);
+
 /// Everything the detector needs, as plain values so it can be filled from yaml, the command line or
 /// dynamic_reconfigure. Defaults are OpenCV's, except corner refinement (edge fit, which PnP needs)
 /// and the dictionary and size (a URC post: DICT_4X4_50, 0.15 m black square).

@@ -39,20 +39,20 @@ struct Marker {
 
 struct RenderOptions {
   int dictionary = cv::aruco::DICT_4X4_50;  // predefined dictionary enum
-  double quiet_zone = 1.0;         // white margin around the black square, in marker cells
+  double quiet_zone = 1.0;                  // white margin around the black square, in marker cells
   // Samples per pixel per axis inside marker bounding boxes (n*n per pixel, as
   // a per-pixel-shifted rank-1 lattice: unbiased coverage, no axis-aligned
   // edge quantization; measured edge bias <= 0.003 px at 8).
   int supersample = 8;
-  double background_depth = 20.0;  // m, fronto-parallel wall behind everything (depth/cloud)
-  bool textured_background = true; // clutter (blobs/lines/gradients) vs plain grey, seeded
+  double background_depth = 20.0;   // m, fronto-parallel wall behind everything (depth/cloud)
+  bool textured_background = true;  // clutter (blobs/lines/gradients) vs plain grey, seeded
   unsigned seed = 1;
   double brightness = 1.0, contrast = 1.0;  // out = ((v - 128) * contrast + 128) * brightness
-  double blur_sigma = 0.0;             // Gaussian blur sigma, pixels
-  double motion_blur_px = 0.0;         // linear motion-blur length, pixels (centred, no shift)
-  double motion_blur_angle_deg = 0.0;  // direction of motion blur, 0 = along +x (image right)
-  double noise_sigma = 0.0;            // additive Gaussian pixel noise, grey levels
-  bool colour = true;                  // CV_8UC3 BGR output; false -> CV_8UC1
+  double blur_sigma = 0.0;                  // Gaussian blur sigma, pixels
+  double motion_blur_px = 0.0;              // linear motion-blur length, pixels (centred, no shift)
+  double motion_blur_angle_deg = 0.0;       // direction of motion blur, 0 = along +x (image right)
+  double noise_sigma = 0.0;                 // additive Gaussian pixel noise, grey levels
+  bool colour = true;                       // CV_8UC3 BGR output; false -> CV_8UC1
   double black_level = 25.0, white_level = 230.0;  // printed ink / paper grey, pre-lighting
 };
 
@@ -63,8 +63,8 @@ struct RenderOptions {
 // a CV_32F image: metres along optical z of the first surface hit by each pixel
 // centre's ray (marker incl. quiet zone, else opt.background_depth).
 // Deterministic: same inputs give identical bytes.
-cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
-                    const RenderOptions& opt, cv::Mat* depth = nullptr);
+cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers, const RenderOptions& opt,
+                    cv::Mat* depth = nullptr);
 
 // Takes a camera and marker; returns the true image corners TL TR BR BL via
 // cv::projectPoints (distortion honoured). Assumes the marker is in front.
@@ -81,7 +81,7 @@ struct CloudOptions {
   double nan_fraction = 0.0;       // fraction of pixels turned into holes
   double depth_noise_sigma = 0.0;  // relative, e.g. 0.005 = 0.5% of depth, along the ray
   unsigned seed = 2;
-  bool hole_blobs = true;          // holes mostly as clustered blobs (stereo-like), rest salt
+  bool hole_blobs = true;  // holes mostly as clustered blobs (stereo-like), rest salt
 };
 
 // Takes a camera and a CV_32F depth image of cam.size (e.g. from RenderScene);

@@ -99,6 +99,22 @@ CornerRefinement CornerRefinementFromName(const std::string& name) {
   throw Error("unknown corner refinement '" + name + "' (valid: none, subpix, contour, apriltag, edge)");
 }
 
+const char* CornerRefinementName(CornerRefinement refinement) {
+  switch (refinement) {
+    case CornerRefinement::kSubpix:
+      return "subpix";
+    case CornerRefinement::kContour:
+      return "contour";
+    case CornerRefinement::kApriltag:
+      return "apriltag";
+    case CornerRefinement::kEdge:
+      return "edge";
+    case CornerRefinement::kNone:
+      break;
+  }
+  return "none";
+}
+
 const std::vector<std::string>& DictionaryNames() { return kDictionaryNames; }
 
 int DictionaryFromName(const std::string& name) {

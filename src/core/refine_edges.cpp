@@ -26,6 +26,8 @@ constexpr double kPlateauBorder = 5.0;
 // Length (px) of edge fitted next to each corner: long enough to average pixel noise, short enough
 // that a distorted (curved) edge is still straight over it.
 constexpr double kFitLength = 20.0;
+// Profiles across each fitted stretch: beyond this the line barely improves and time grows.
+constexpr int kProfilesPerEdge = 16;
 
 struct Line {
   cv::Point2d point, direction;  // direction is unit length
@@ -48,8 +50,8 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   // Only the stretch next to the corner: lens distortion bends long edges.
   const double start = reach + 1.0, stop = std::min(0.5 * length, start + kFitLength);
   if (stop - start < 2.0) return false;
-  const int count = std::min(24, static_cast<int>(stop - start) + 1);
-  const double step = 0.25;
+  const int count = std::min(kProfilesPerEdge, static_cast<int>(stop - start) + 1);
+  const double step = 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
 
   std::vector<cv::Point2d> points;
@@ -89,11 +91,20 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
     if (std::abs(offset) < half * step) points.push_back(base + outward * offset);
   }
   if (points.size() < 3) return false;
-  cv::Vec4f fitted;
-  std::vector<cv::Point2f> as_float(points.begin(), points.end());
-  cv::fitLine(as_float, fitted, cv::DIST_L2, 0, 0.01, 0.01);
-  line.direction = cv::Point2d(fitted[0], fitted[1]);
-  line.point = cv::Point2d(fitted[2], fitted[3]);
+  // Total least squares: the line through the centroid along the points' principal direction.
+  cv::Point2d mean(0, 0);
+  for (const auto& p : points) mean += p;
+  mean *= 1.0 / points.size();
+  double sxx = 0, sxy = 0, syy = 0;
+  for (const auto& p : points) {
+    const cv::Point2d d = p - mean;
+    sxx += d.x * d.x;
+    sxy += d.x * d.y;
+    syy += d.y * d.y;
+  }
+  const double angle = 0.5 * std::atan2(2.0 * sxy, sxx - syy);
+  line.point = mean;
+  line.direction = cv::Point2d(std::cos(angle), std::sin(angle));
   return true;
 }
 
@@ -146,10 +157,10 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
 
 int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
   CV_Assert(grey.type() == CV_8UC1 && cells >= 3);
-  // A few passes: better corners give better edge directions and profile positions.
+  // Two passes: better corners give better edge directions and profile positions.
   const std::array<cv::Point2f, 4> start = corners;
   int moved = 0;
-  for (int pass = 0; pass < 3; ++pass) moved = RefineOnce(grey, corners, cells);
+  for (int pass = 0; pass < 2; ++pass) moved = RefineOnce(grey, corners, cells);
   for (int i = 0; i < 4; ++i) {
     if (cv::norm(corners[i] - start[i]) > 4.0) corners[i] = start[i];  // drifted: distrust
   }

@@ -163,7 +163,7 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   Get(pnh, "ignored_ids", d.ignored_ids);
   RequireIds(d.ignored_ids, "ignored_ids");
 
-  std::string refinement = "subpix";
+  std::string refinement = CornerRefinementName(d.corner_refinement);
   Get(pnh, "corner_refinement", refinement);
   try {
     d.corner_refinement = CornerRefinementFromName(refinement);
@@ -247,8 +247,7 @@ void ApplyReconfigure(const ArucotagDetectorConfig& config, DetectorConfig& dete
 
 ArucotagDetectorConfig ToReconfigure(DetectorConfig detector, PreprocessOptions preprocess) {
   ArucotagDetectorConfig config = ArucotagDetectorConfig::__getDefault__();
-  static const char* const kRefinementNames[] = {"none", "subpix", "contour", "apriltag", "edge"};
-  config.corner_refinement = kRefinementNames[static_cast<int>(detector.corner_refinement)];
+  config.corner_refinement = CornerRefinementName(detector.corner_refinement);
   ForEachField(detector, preprocess, [&config](const auto& field, auto& core) { config.*field.live = core.*field.core; });
   return config;
 }
