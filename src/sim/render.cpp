@@ -83,15 +83,14 @@ class RayMap {
 // A marker reduced to what the per-sample inner loop needs: a homography from
 // the normalized ray (x, y, 1) to marker-plane coordinates and the bit grid.
 struct PreparedMarker {
-  cv::Vec3d h1, h2, h3;   // X = h1.d / h3.d, Y = h2.d / h3.d
-  double c = 0;           // lambda = c / h3.d (c < 0: printed face visible)
+  cv::Vec3d h1, h2, h3;  // X = h1.d / h3.d, Y = h2.d / h3.d
+  double c = 0;          // lambda = c / h3.d (c < 0: printed face visible)
   double half_side = 0, half_outer = 0, cell = 0;
-  cv::Mat bits;           // CV_8U, 255 = white, incl. the 1-cell black border
-  cv::Rect box;           // pixels that may see the quiet-zone quad
+  cv::Mat bits;  // CV_8U, 255 = white, incl. the 1-cell black border
+  cv::Rect box;  // pixels that may see the quiet-zone quad
 };
 
-PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits,
-                       double quiet_zone) {
+PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits, double quiet_zone) {
   PreparedMarker p;
   cv::Matx33d r;
   cv::Rodrigues(m.rvec, r);
@@ -121,16 +120,19 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits,
     const cv::Vec3d& a = quad[e];
     const cv::Vec3d& b = quad[(e + 1) % 4];
     if (a[2] >= kNear) poly.push_back(a);
-    if ((a[2] >= kNear) != (b[2] >= kNear)) poly.push_back(a + (b - a) * ((kNear - a[2]) / (b[2] - a[2])));
+    if ((a[2] >= kNear) != (b[2] >= kNear))
+      poly.push_back(a + (b - a) * ((kNear - a[2]) / (b[2] - a[2])));
   }
   if (poly.empty()) return p;  // entirely behind the camera: empty box
   const bool distorted = HasDistortion(cam);
   const int per_edge = distorted ? 16 : 1;
-  const double max_tan = 4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
+  const double max_tan =
+      4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
   std::vector<cv::Point3d> pts;
   for (size_t e = 0; e < poly.size(); ++e)
     for (int i = 0; i < per_edge; ++i) {
-      const cv::Vec3d q = poly[e] + (poly[(e + 1) % poly.size()] - poly[e]) * (double(i) / per_edge);
+      const cv::Vec3d q =
+          poly[e] + (poly[(e + 1) % poly.size()] - poly[e]) * (double(i) / per_edge);
       if (distorted && std::hypot(q[0], q[1]) > max_tan * q[2]) {
         p.box = full;
         return p;
@@ -145,10 +147,15 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits,
     y0 = std::min(y0, q.y), y1 = std::max(y1, q.y);
   }
   // Clamp in double first: near-plane points project to huge coordinates.
-  auto lo = [](double t, int n) { return static_cast<int>(std::floor(std::clamp(t, -4.0, n + 4.0))) - 2; };
-  auto hi = [](double t, int n) { return static_cast<int>(std::ceil(std::clamp(t, -4.0, n + 4.0))) + 3; };
+  auto lo = [](double t, int n) {
+    return static_cast<int>(std::floor(std::clamp(t, -4.0, n + 4.0))) - 2;
+  };
+  auto hi = [](double t, int n) {
+    return static_cast<int>(std::ceil(std::clamp(t, -4.0, n + 4.0))) + 3;
+  };
   p.box = cv::Rect(cv::Point(lo(x0, cam.size.width), lo(y0, cam.size.height)),
-                   cv::Point(hi(x1, cam.size.width), hi(y1, cam.size.height))) & full;
+                   cv::Point(hi(x1, cam.size.width), hi(y1, cam.size.height))) &
+          full;
   return p;
 }
 
@@ -218,6 +225,69 @@ bool CastRay(const std::vector<const PreparedMarker*>& cand, double x, double y,
   return hit;
 }
 
+// Exact shortcut for pixels that every sub-sample would see identically,
+// decided from the rays through the pixel's four corners. It relies on
+// convexity: the pixel maps into each marker plane as a convex quad when the
+// plane's horizon does not cross it, inverse depth 1/lambda = h3.d / c is
+// affine in the ray so "in front of" is a half-plane, and marker cells
+// (quiet-zone cells included) are convex. Returns true if the pixel is
+// uniform, with *hit telling marker vs wall and *grey the marker's grey.
+bool UniformPixel(const std::vector<const PreparedMarker*>& cand, const cv::Vec2d (&d)[4],
+                  double wall, double white, double black, bool* hit, double* grey) {
+  const PreparedMarker* near = nullptr;
+  int cell_row = 0, cell_col = 0;
+  double inv_lam[4];  // inverse depth of the nearest marker at each corner
+  for (int k = 0; k < 4; ++k) {
+    const PreparedMarker* nk = nullptr;
+    double best = wall;
+    int r = 0, c = 0;
+    for (const PreparedMarker* p : cand) {
+      const double den = p->h3[0] * d[k][0] + p->h3[1] * d[k][1] + p->h3[2];
+      if (den == 0.0) continue;
+      const double lam = p->c / den;
+      if (lam <= 0.0 || lam >= best) continue;
+      const double mx = (p->h1[0] * d[k][0] + p->h1[1] * d[k][1] + p->h1[2]) / den;
+      const double my = (p->h2[0] * d[k][0] + p->h2[1] * d[k][1] + p->h2[2]) / den;
+      if (std::abs(mx) > p->half_outer || std::abs(my) > p->half_outer) continue;
+      best = lam;
+      nk = p;
+      c = p->c >= 0.0 ? 0 : static_cast<int>(std::floor((mx + p->half_side) / p->cell));
+      r = p->c >= 0.0 ? 0 : static_cast<int>(std::floor((p->half_side - my) / p->cell));
+    }
+    if (k > 0 && (nk != near || r != cell_row || c != cell_col)) return false;
+    near = nk, cell_row = r, cell_col = c;
+    inv_lam[k] = 1.0 / best;
+  }
+  for (const PreparedMarker* p : cand) {
+    if (p == near) continue;
+    // Harmless if its plane is nowhere in front of the visible surface ...
+    bool behind = true, same_sign = true;
+    int out[4] = {0, 0, 0, 0};  // corners beyond +x, -x, +y, -y of its outer square
+    for (int k = 0; k < 4; ++k) {
+      const double den = p->h3[0] * d[k][0] + p->h3[1] * d[k][1] + p->h3[2];
+      behind &= p->c == 0.0 || den / p->c <= inv_lam[k];
+      const double den0 = p->h3[0] * d[0][0] + p->h3[1] * d[0][1] + p->h3[2];
+      same_sign &= den != 0.0 && (den > 0.0) == (den0 > 0.0);
+      if (den == 0.0) continue;
+      const double mx = (p->h1[0] * d[k][0] + p->h1[1] * d[k][1] + p->h1[2]) / den;
+      const double my = (p->h2[0] * d[k][0] + p->h2[1] * d[k][1] + p->h2[2]) / den;
+      out[0] += mx > p->half_outer, out[1] += mx < -p->half_outer;
+      out[2] += my > p->half_outer, out[3] += my < -p->half_outer;
+    }
+    // ... or the pixel lies wholly beyond one side of its outer square.
+    const bool outside = same_sign && (out[0] == 4 || out[1] == 4 || out[2] == 4 || out[3] == 4);
+    if (!behind && !outside) return false;
+  }
+  *hit = near != nullptr;
+  if (near) {
+    const bool inside =
+        cell_col >= 0 && cell_row >= 0 && cell_col < near->bits.cols && cell_row < near->bits.rows;
+    *grey =
+        (near->c >= 0.0 || !inside || near->bits.ptr<uchar>(cell_row)[cell_col]) ? white : black;
+  }
+  return true;
+}
+
 // Seeded clutter: smooth gradients, soft blobs, ellipses and lines. Only
 // round/elongated shapes are drawn so that no square with a dark border and
 // a light surround is created on purpose; a detector pass then scrubs any
@@ -263,11 +333,11 @@ cv::Mat Background(cv::Size size, const RenderOptions& opt) {
   std::vector<int> ids;
   cv::Mat grey;
   cv::cvtColor(bg, grey, cv::COLOR_BGR2GRAY);
-  cv::aruco::detectMarkers(grey, cv::aruco::getPredefinedDictionary(opt.dictionary), corners,
-                           ids, params);
+  cv::aruco::detectMarkers(grey, cv::aruco::getPredefinedDictionary(opt.dictionary), corners, ids,
+                           params);
   for (const auto& q : corners) {
-    const cv::Rect r = (cv::boundingRect(q) + cv::Size(8, 8) - cv::Point(4, 4)) &
-                       cv::Rect(cv::Point(0, 0), size);
+    const cv::Rect r =
+        (cv::boundingRect(q) + cv::Size(8, 8) - cv::Point(4, 4)) & cv::Rect(cv::Point(0, 0), size);
     bg(r).setTo(cv::mean(bg(r)));
   }
   return bg;
@@ -297,8 +367,8 @@ cv::Mat MotionKernel(double length, double angle_deg) {
 
 Camera MakeCamera(cv::Size size, double hfov_deg) {
   const double f = 0.5 * size.width / std::tan(0.5 * hfov_deg * kDeg);
-  return {cv::Matx33d(f, 0, 0.5 * (size.width - 1), 0, f, 0.5 * (size.height - 1), 0, 0, 1), {},
-          size};
+  return {
+      cv::Matx33d(f, 0, 0.5 * (size.width - 1), 0, f, 0.5 * (size.height - 1), 0, 0, 1), {}, size};
 }
 
 std::array<cv::Point3d, 4> MarkerCorners3d(double side) {
@@ -321,8 +391,8 @@ cv::Point2f ProjectCentre(const Camera& cam, const Marker& m) {
   return cv::Point2f(img[0]);
 }
 
-cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
-                    const RenderOptions& opt, cv::Mat* depth) {
+cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers, const RenderOptions& opt,
+                    cv::Mat* depth) {
   CV_Assert(cam.size.area() > 0 && opt.supersample >= 1);
   cv::Mat img;
   Background(cam.size, opt).convertTo(img, CV_32FC3);
@@ -358,23 +428,33 @@ cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers,
           for (const PreparedMarker* p : in_row)
             if (u >= p->box.x && u < p->box.x + p->box.width) cand.push_back(p);
           if (cand.empty()) continue;
-          double sum = 0, g = 0, zz = 0;
-          int misses = 0;
-          // Rank-1 lattice, Cranley-Patterson shifted per pixel (see Rank1Generator).
-          const double sx = n2 > 1 ? PixelHash(u, v, 0) : 0.5, sy = n2 > 1 ? PixelHash(u, v, 1) : 0.5;
-          for (int k = 0, ky = 0; k < n2; ++k, ky = ky + gen < n2 ? ky + gen : ky + gen - n2) {
-            const double fx = k * inv_n2 + sx, fy = ky * inv_n2 + sy;
-            const cv::Vec2d r =
-                rays(u - 0.5 + (fx - std::floor(fx)), v - 0.5 + (fy - std::floor(fy)));
-            if (CastRay(cand, r[0], r[1], opt.background_depth, opt.white_level, opt.black_level,
-                        &g, &zz))
-              sum += g;
-            else
-              ++misses;
+          double g = 0, zz = 0;
+          const cv::Vec2d corner[4] = {rays(u - 0.5, v - 0.5), rays(u + 0.5, v - 0.5),
+                                       rays(u + 0.5, v + 0.5), rays(u - 0.5, v + 0.5)};
+          bool hit = false;
+          if (UniformPixel(cand, corner, opt.background_depth, opt.white_level, opt.black_level,
+                           &hit, &g)) {
+            if (hit) row[u] = cv::Vec3f::all(static_cast<float>(g));
+          } else {
+            // Rank-1 lattice, Cranley-Patterson shifted per pixel (see Rank1Generator).
+            double sum = 0;
+            int misses = 0;
+            const double sx = n2 > 1 ? PixelHash(u, v, 0) : 0.5,
+                         sy = n2 > 1 ? PixelHash(u, v, 1) : 0.5;
+            for (int k = 0, ky = 0; k < n2; ++k, ky = ky + gen < n2 ? ky + gen : ky + gen - n2) {
+              const double fx = k * inv_n2 + sx, fy = ky * inv_n2 + sy;
+              const cv::Vec2d r =
+                  rays(u - 0.5 + (fx - std::floor(fx)), v - 0.5 + (fy - std::floor(fy)));
+              if (CastRay(cand, r[0], r[1], opt.background_depth, opt.white_level, opt.black_level,
+                          &g, &zz))
+                sum += g;
+              else
+                ++misses;
+            }
+            // Misses keep the background colour; hits are achromatic ink/paper.
+            row[u] = row[u] * static_cast<float>(misses * inv_n2) +
+                     cv::Vec3f::all(static_cast<float>(sum * inv_n2));
           }
-          // Misses keep the background colour; hits are achromatic ink/paper.
-          row[u] = row[u] * static_cast<float>(misses * inv_n2) +
-                   cv::Vec3f::all(static_cast<float>(sum * inv_n2));
           const cv::Vec2d rc = rays(u, v);
           CastRay(cand, rc[0], rc[1], opt.background_depth, 0, 0, &g, &zz);
           zrow[u] = static_cast<float>(zz);
@@ -421,8 +501,9 @@ cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudO
       rng.fill(field, cv::RNG::UNIFORM, cv::Scalar(0), cv::Scalar(1));
       cv::GaussianBlur(field, field, cv::Size(), 6.0);
       std::vector<float> vals(field.begin<float>(), field.end<float>());
-      const size_t k = std::min(vals.size() - 1,
-                                static_cast<size_t>(vals.size() * (1.0 - blob_share * opt.nan_fraction)));
+      const size_t k =
+          std::min(vals.size() - 1,
+                   static_cast<size_t>(vals.size() * (1.0 - blob_share * opt.nan_fraction)));
       std::nth_element(vals.begin(), vals.begin() + k, vals.end());
       hole = field > vals[k];
     }
