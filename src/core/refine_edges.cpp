@@ -28,6 +28,8 @@ constexpr double kPlateauBorder = 5.0;
 constexpr double kFitLength = 20.0;
 // Profiles across each fitted stretch: beyond this the line barely improves and time grows.
 constexpr int kProfilesPerEdge = 16;
+// Markers with a shorter perimeter (px) get a third pass.
+constexpr double kSmallPerimeter = 200.0;
 
 struct Line {
   cv::Point2d point, direction;  // direction is unit length
@@ -51,7 +53,8 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const double start = reach + 1.0, stop = std::min(0.5 * length, start + kFitLength);
   if (stop - start < 2.0) return false;
   const int count = std::min(kProfilesPerEdge, static_cast<int>(stop - start) + 1);
-  const double step = 0.5;
+  // Finer sampling where the profile is only a few pixels long.
+  const double step = reach < 2.0 ? 0.25 : 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
 
   std::vector<cv::Point2d> points;
@@ -157,10 +160,13 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
 
 int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
   CV_Assert(grey.type() == CV_8UC1 && cells >= 3);
-  // Two passes: better corners give better edge directions and profile positions.
+  // Several passes: better corners give better edge directions and profile positions.
   const std::array<cv::Point2f, 4> start = corners;
   int moved = 0;
-  for (int pass = 0; pass < 2; ++pass) moved = RefineOnce(grey, corners, cells);
+  double perimeter = 0.0;
+  for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[(i + 1) % 4] - corners[i]);
+  const int passes = perimeter < kSmallPerimeter ? 3 : 2;  // small markers start further off
+  for (int pass = 0; pass < passes; ++pass) moved = RefineOnce(grey, corners, cells);
   for (int i = 0; i < 4; ++i) {
     if (cv::norm(corners[i] - start[i]) > 4.0) corners[i] = start[i];  // drifted: distrust
   }
