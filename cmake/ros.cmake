@@ -32,7 +32,8 @@ if(CATKIN_ENABLE_TESTING)
   # Each rostest starts its own master and manager; the test node publishes frames rendered by
   # arucotag_sim (ROS-free) and checks what the real nodelet publishes.
   foreach(name detector lifecycle)
-    add_rostest_gtest(test_ros_${name} test/ros/${name}.test test/ros/test_${name}.cpp test/ros/rig.cpp)
+    add_rostest_gtest(test_ros_${name} test/ros/${name}.test test/ros/test_${name}.cpp test/ros/rig.cpp
+      test/ros/flip_search.cpp)
     target_include_directories(test_ros_${name} PRIVATE ${ARUCOTAG_ROS_INCLUDES})
     target_include_directories(test_ros_${name} SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
     target_link_libraries(test_ros_${name} arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})

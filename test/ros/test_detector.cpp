@@ -14,6 +14,7 @@
 #include <tf2_ros/static_transform_broadcaster.h>
 #include <tf2_ros/transform_listener.h>
 
+#include "flip_search.hpp"
 #include "rig.hpp"
 
 namespace arucotag::test {
@@ -74,15 +75,20 @@ const Scene& EmptyScene() {
   return scene;
 }
 
-// Found with the renderer: 2.5 m away, 8 degrees of yaw, sensor noise. IPPE's lower-error
-// solution is the mirror image (about 21 degrees off); the cloud's plane picks the other one.
+// A frame where IPPE's lower-error solution is the mirror image, found with the renderer at start-up
+// (the core run on candidate frames decides, so the case survives changes to the renderer and the
+// detector): a marker about 20 px wide, tilted 20-36 degrees, 3.4-4.6 m away. The cloud's plane
+// picks the other solution.
 const Scene& FlipScene() {
   static const Scene scene = [] {
-    sim::RenderOptions options;
-    options.noise_sigma = 5.0;
-    options.seed = 2;
-    options.blur_sigma = 0.7;
-    return Render({sim::FacingCamera(7, 0.15, {0.1, 0.05, 2.5}, 8.0, 2.0, 10.0)}, options);
+    for (unsigned seed = 1; seed <= 300; ++seed) {
+      sim::RenderOptions options;
+      options.seed = seed;
+      const double yaw = 20.0 + 2.0 * (seed % 9), range = 3.4 + 0.1 * (seed % 13), roll = 7.0 + 30.0 * (seed % 12);
+      Scene candidate = Render({sim::FacingCamera(7, 0.15, {0.1, 0.05, range}, yaw, 0.3 * yaw, roll)}, options);
+      if (arucotag::test::PnpPicksMirror(candidate.camera, candidate.markers[0], candidate.image)) return candidate;
+    }
+    return Scene();
   }();
   return scene;
 }
@@ -236,6 +242,7 @@ TEST(Detector, SameIdTwiceGivesTwoTagsAndOneTf) {
 
 TEST(Detector, FusedFixesWhatPnpFlips) {
   const Scene& scene = FlipScene();
+  ASSERT_FALSE(scene.markers.empty()) << "no frame among 300 renders where PnP alone picks the mirror pose";
   const cv::Matx33d truth = Rotation(scene.markers[0]);
   const auto fused = world->rig.PublishUntil(scene, world->fused, WithCloud());
   ASSERT_TRUE(fused);
@@ -246,8 +253,8 @@ TEST(Detector, FusedFixesWhatPnpFlips) {
   EXPECT_EQ(pnp_tag->pose_source, TagMsg::PNP);
   EXPECT_EQ(fused_tag->pose_source, TagMsg::FUSED);
   EXPECT_GT(AngleDeg(Rotation(pnp_tag->pose.orientation), truth), 10.0) << "PnP alone should pick the mirror pose";
-  EXPECT_LT(AngleDeg(Rotation(fused_tag->pose.orientation), truth), 1.0) << "the cloud's plane should fix it";
-  EXPECT_GT(fused_tag->ambiguity, 0.5) << "corners alone cannot tell the two apart";
+  EXPECT_LT(AngleDeg(Rotation(fused_tag->pose.orientation), truth), 2.0) << "the cloud's plane should fix it";
+  EXPECT_GT(fused_tag->ambiguity, 0.3) << "corners alone barely tell the two apart";
   EXPECT_GT(fused_tag->cloud_points, 100);
 }
 
