@@ -4,7 +4,9 @@
 #include <cmath>
 #include <vector>
 
+#include <gtest/gtest.h>
 #include <opencv2/calib3d.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include <arucotag/arucotag.hpp>
 #include <arucotag/sim.hpp>
@@ -42,6 +44,15 @@ inline std::vector<ArucoTag> RenderAndDetect(const sim::Camera& camera, const st
   cv::Mat grey;
   PreprocessFrame(image, grey);
   return Detect(grey, Detector(config));
+}
+
+/// A photo from test/data as the grey image the detector takes.
+inline cv::Mat LoadGrey(const std::string& relative) {
+  const cv::Mat image = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + relative, cv::IMREAD_UNCHANGED);
+  EXPECT_FALSE(image.empty()) << relative;
+  cv::Mat grey;
+  PreprocessFrame(image, grey);
+  return grey;
 }
 
 }  // namespace arucotag::test

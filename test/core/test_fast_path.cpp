@@ -15,14 +15,6 @@
 namespace arucotag {
 namespace {
 
-cv::Mat LoadGrey(const std::string& relative) {
-  const cv::Mat image = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + relative, cv::IMREAD_UNCHANGED);
-  EXPECT_FALSE(image.empty()) << relative;
-  cv::Mat grey;
-  PreprocessFrame(image, grey);
-  return grey;
-}
-
 std::multiset<int> Ids(const std::vector<ArucoTag>& tags) {
   std::multiset<int> ids;
   for (const auto& t : tags) ids.insert(t.id);
@@ -74,7 +66,7 @@ TEST(FastPath, RealPhotosSameIdsAndCornersAsTheFullSearch) {
       config.tracking = false;
       DetectorConfig reference = config;
       reference.fast_path = false;
-      const cv::Mat grey = LoadGrey(photo.file);
+      const cv::Mat grey = test::LoadGrey(photo.file);
       const auto fast = Detect(grey, Detector(config));
       const auto full = Detect(grey, Detector(reference));
       EXPECT_EQ(full.size(), photo.markers) << photo.file;

@@ -9,24 +9,18 @@
 
 #include <arucotag/arucotag.hpp>
 
+#include "scene.hpp"
+
 namespace arucotag {
 namespace {
 
 using Quad = std::array<cv::Point2f, 4>;
 
-cv::Mat LoadGrey(const std::string& relative) {
-  const cv::Mat image = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + relative, cv::IMREAD_UNCHANGED);
-  EXPECT_FALSE(image.empty()) << relative;
-  cv::Mat grey;
-  PreprocessFrame(image, grey);
-  return grey;
-}
-
 std::vector<ArucoTag> DetectIn(const std::string& relative, const std::string& dictionary, CornerRefinement refine) {
   DetectorConfig config;
   config.dictionary = dictionary;
   config.corner_refinement = refine;
-  return Detect(LoadGrey(relative), Detector(config));
+  return Detect(test::LoadGrey(relative), Detector(config));
 }
 
 std::multiset<int> Ids(const std::vector<ArucoTag>& tags) {
@@ -130,7 +124,7 @@ TEST(RealPhotos, FiducialsPnpDistance) {
   config.default_side_length = 0.145;
   const Detector detector(config);
 
-  auto one = Detect(LoadGrey("ubiquity_fiducials/tag_01_d7_14cm.png"), detector);
+  auto one = Detect(test::LoadGrey("ubiquity_fiducials/tag_01_d7_14cm.png"), detector);
   ASSERT_EQ(one.size(), 1u);
   ASSERT_TRUE(EstimatePoseFromPNP(RaspiCam(), one[0]));
   EXPECT_EQ(one[0].pose_source, PoseSource::kPnp);
@@ -140,7 +134,7 @@ TEST(RealPhotos, FiducialsPnpDistance) {
   EXPECT_GT(one[0].yaw, 0.0);
   EXPECT_LT(one[0].yaw, 0.05);
 
-  auto two = Detect(LoadGrey("ubiquity_fiducials/tag_245-246_d7_14cm.png"), detector);
+  auto two = Detect(test::LoadGrey("ubiquity_fiducials/tag_245-246_d7_14cm.png"), detector);
   ASSERT_EQ(two.size(), 2u);
   for (auto& tag : two) {
     ASSERT_TRUE(EstimatePoseFromPNP(RaspiCam(), tag));

@@ -138,7 +138,9 @@ TEST(Synthetic, PnpPoseWithinHalfPercentAndOneDegree) {
     const double translation_bound = c.range <= 4.0 ? 0.005 : (c.range <= 7.0 ? 0.01 : 0.04);
     EXPECT_LE(cv::norm(tag.tvec - marker.tvec), translation_bound * range) << Describe(c);
     EXPECT_NEAR(tag.yaw, std::atan2(marker.tvec[0], marker.tvec[2]), 0.1 * kDeg) << Describe(c);
-    if (c.range <= 4.0) EXPECT_LE(rotation_error, 1.0) << Describe(c);
+    if (c.range <= 4.0) {
+      EXPECT_LE(rotation_error, 1.0) << Describe(c);
+    }
     EXPECT_LT(tag.reprojection_error, c.range <= 4.0 ? 0.2 : 0.8) << Describe(c);
     EXPECT_EQ(tag.pnp.solutions, 2) << Describe(c);
   }
