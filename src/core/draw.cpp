@@ -37,10 +37,15 @@ void DrawDetections(cv::Mat& image, const std::vector<ArucoTag>& tags) {
       std::snprintf(buffer, sizeof(buffer), " %.2fm", tag.distance);
       label += buffer;
     }
+    // Above the tag, centred on it: inside it the label hid the bits, and neighbouring faces of a
+    // post overlapped their labels.
     const cv::Point2f centre = FindTagCenter(tag);
+    const cv::Rect box = cv::boundingRect(quad);
     int baseline = 0;
     const cv::Size size = cv::getTextSize(label, cv::FONT_HERSHEY_SIMPLEX, font_scale, thickness, &baseline);
-    const cv::Point origin(cvRound(centre.x) - size.width / 2, cvRound(centre.y) + size.height / 2);
+    const int above = box.y - 2 * thickness - baseline;
+    const cv::Point origin(cvRound(centre.x) - size.width / 2,
+                           above - size.height >= 0 ? above : box.y + box.height + size.height + 2 * thickness);
     // A dark halo keeps the label readable on the marker's black and white cells.
     cv::putText(image, label, origin, cv::FONT_HERSHEY_SIMPLEX, font_scale, cv::Scalar::all(0), thickness + 2,
                 cv::LINE_AA);
