@@ -30,6 +30,7 @@ const Field<DetectorConfig, int> kDetectorInts[] = {
     ARUCOTAG_FIELD(DetectorConfig, perspective_remove_pixel_per_cell),
     ARUCOTAG_FIELD(DetectorConfig, corner_refinement_win_size),
     ARUCOTAG_FIELD(DetectorConfig, corner_refinement_max_iterations),
+    ARUCOTAG_FIELD(DetectorConfig, full_search_interval),
 };
 const Field<DetectorConfig, double> kDetectorDoubles[] = {
     ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_constant),
@@ -46,6 +47,8 @@ const Field<DetectorConfig, double> kDetectorDoubles[] = {
 };
 const Field<DetectorConfig, bool> kDetectorBools[] = {
     ARUCOTAG_FIELD(DetectorConfig, detect_inverted_marker),
+    ARUCOTAG_FIELD(DetectorConfig, fast_path),
+    ARUCOTAG_FIELD(DetectorConfig, tracking),
 };
 const Field<PreprocessOptions, int> kPreprocessInts[] = {
     ARUCOTAG_FIELD(PreprocessOptions, clahe_tile_grid),
