@@ -286,27 +286,14 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
 }
 
 int Main(int argc, char** argv) {
-  std::string data = "test/data", cache = "/tmp/arucotag_bench_frames", json = "results.json";
-  int frames = 6, sequence_frames = 100, reps = 5, threads = -1;
-  for (int i = 1; i < argc; ++i) {
-    const std::string arg = argv[i];
-    const auto next = [&]() -> std::string {
-      if (i + 1 >= argc) throw Error("missing value after " + arg);
-      return argv[++i];
-    };
-    if (arg == "--data") data = next();
-    else if (arg == "--cache") cache = next();
-    else if (arg == "--json") json = next();
-    else if (arg == "--frames") frames = std::stoi(next());
-    else if (arg == "--sequence-frames") sequence_frames = std::stoi(next());
-    else if (arg == "--reps") reps = std::stoi(next());
-    else if (arg == "--threads") threads = std::stoi(next());
-    else throw Error("unknown option " + arg);
-  }
+  const Options options = ParseOptions(argc, argv, "results.json");
+  const std::string& cache = options.cache;
+  const std::string& json = options.json;
+  const int reps = options.reps;
+  const int threads = options.threads;
   if (threads > 0) cv::setNumThreads(threads);
   std::fprintf(stderr, "bench_detect: loading frame sets (rendered once into %s)...\n", cache.c_str());
-  std::vector<FrameSet> sets = RealSets(data);
-  for (auto& s : SyntheticSets(cache, frames, sequence_frames)) sets.push_back(std::move(s));
+  std::vector<FrameSet> sets = AllSets(options);
 
   std::vector<SetResult> results;
   for (const auto& set : sets) {

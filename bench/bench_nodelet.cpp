@@ -101,26 +101,12 @@ struct Row {
 };
 
 int Main(int argc, char** argv) {
-  std::string data = "test/data", cache = "/tmp/arucotag_bench_frames", json = "nodelet.json";
-  int frames = 6, sequence_frames = 100, reps = 5;
-  for (int i = 1; i < argc; ++i) {
-    const std::string arg = argv[i];
-    const auto next = [&]() -> std::string {
-      if (i + 1 >= argc) throw Error("missing value after " + arg);
-      return argv[++i];
-    };
-    if (arg == "--data") data = next();
-    else if (arg == "--cache") cache = next();
-    else if (arg == "--json") json = next();
-    else if (arg == "--frames") frames = std::stoi(next());
-    else if (arg == "--sequence-frames") sequence_frames = std::stoi(next());
-    else if (arg == "--reps") reps = std::stoi(next());
-    else throw Error("unknown option " + arg);
-  }
+  const Options options = ParseOptions(argc, argv, "nodelet.json");
+  const std::string& json = options.json;
+  const int reps = options.reps;
   if (!ros::master::check()) throw Error("no ROS master at " + ros::master::getURI() + " (bench/run.sh starts one)");
 
-  std::vector<FrameSet> sets = RealSets(data);
-  for (auto& s : SyntheticSets(cache, frames, sequence_frames)) sets.push_back(std::move(s));
+  std::vector<FrameSet> sets = AllSets(options);
 
   ros::NodeHandle nh;
   const std::string detector = std::string(kNamespace) + "/detector";

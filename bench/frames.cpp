@@ -371,4 +371,31 @@ Score ScoreFrame(const Frame& frame, const std::vector<int>& ids,
   return score;
 }
 
+Options ParseOptions(int argc, char** argv, const std::string& default_json) {
+  Options options;
+  options.json = default_json;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    const auto next = [&]() -> std::string {
+      if (i + 1 >= argc) throw Error("missing value after " + arg);
+      return argv[++i];
+    };
+    if (arg == "--data") options.data = next();
+    else if (arg == "--cache") options.cache = next();
+    else if (arg == "--json") options.json = next();
+    else if (arg == "--frames") options.frames = std::stoi(next());
+    else if (arg == "--sequence-frames") options.sequence_frames = std::stoi(next());
+    else if (arg == "--reps") options.reps = std::stoi(next());
+    else if (arg == "--threads") options.threads = std::stoi(next());
+    else throw Error("unknown option " + arg);
+  }
+  return options;
+}
+
+std::vector<FrameSet> AllSets(const Options& options) {
+  std::vector<FrameSet> sets = RealSets(options.data);
+  for (auto& s : SyntheticSets(options.cache, options.frames, options.sequence_frames)) sets.push_back(std::move(s));
+  return sets;
+}
+
 }  // namespace arucotag::bench

@@ -40,6 +40,23 @@ struct FrameSet {
   std::vector<Frame> frames;
 };
 
+/// Command line shared by the benchmark programs.
+struct Options {
+  std::string data = "test/data";                     ///< --data: the real photos
+  std::string cache = "/tmp/arucotag_bench_frames";   ///< --cache: rendered frame sets
+  std::string json;                                   ///< --json: results file
+  int frames = 6;                                     ///< --frames: rendered scenes per synthetic set
+  int sequence_frames = 100;                          ///< --sequence-frames
+  int reps = 5;                                       ///< --reps: timed passes
+  int threads = -1;                                   ///< --threads: OpenCV threads (-1: OpenCV's choice)
+};
+
+/// Parses the options above; throws arucotag::Error on an unknown option or a missing value.
+Options ParseOptions(int argc, char** argv, const std::string& default_json);
+
+/// The real photos followed by every synthetic set, as both benchmark programs time them.
+std::vector<FrameSet> AllSets(const Options& options);
+
 /// Loads the five real photos of test/data (two sets: 640x480 tutorial photos, 1280x960 Raspberry
 /// Pi photos). Throws arucotag::Error when a file is missing.
 std::vector<FrameSet> RealSets(const std::string& data_dir);
