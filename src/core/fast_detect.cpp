@@ -309,7 +309,6 @@ struct DictionaryCodes {
   const uchar* data = nullptr;
   int rows = 0, cols = 0;
   uint64_t checksum = 0;
-  int words = 0;                // 1 when the codes fit 64 bits, 0 otherwise (byte-wise look-up)
   std::vector<uint64_t> code;   // 4 per marker: rotations 0..3
 };
 
@@ -329,15 +328,14 @@ const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   cache.rows = list.rows;
   cache.cols = list.cols;
   cache.checksum = checksum;
-  if (nbytes <= 8) {
-    cache.words = 1;
-    cache.code.resize(static_cast<size_t>(list.rows) * 4);
-    for (int m = 0; m < list.rows; ++m) {
-      for (int r = 0; r < 4; ++r) {
-        uint64_t v = 0;
-        for (int k = 0; k < nbytes; ++k) v = (v << 8) | list.ptr(m)[r * nbytes + k];
-        cache.code[static_cast<size_t>(m) * 4 + r] = v;
-      }
+  // Every predefined dictionary (the only ones a Detector builds) has at most 7x7 = 49 bits.
+  CV_Assert(nbytes <= 8);
+  cache.code.resize(static_cast<size_t>(list.rows) * 4);
+  for (int m = 0; m < list.rows; ++m) {
+    for (int r = 0; r < 4; ++r) {
+      uint64_t v = 0;
+      for (int k = 0; k < nbytes; ++k) v = (v << 8) | list.ptr(m)[r * nbytes + k];
+      cache.code[static_cast<size_t>(m) * 4 + r] = v;
     }
   }
   return cache;
@@ -452,33 +450,13 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   }
   const int max_correction = static_cast<int>(double(dictionary.maxCorrectionBits) * p.errorCorrectionRate);
   const DictionaryCodes& codes = CodesOf(dictionary);
-  if (codes.words > 0) {
-    uint64_t candidate = 0;
-    for (int k = 0; k < nbytes; ++k) candidate = (candidate << 8) | packed[k];
-    const uint64_t* code = codes.code.data();
-    for (int m = 0; m < dictionary.bytesList.rows; ++m, code += 4) {
-      int best = marker_size * marker_size + 1, best_rotation = -1;
-      for (int r = 0; r < 4; ++r) {
-        const int distance = PopCount(code[r] ^ candidate);
-        if (distance < best) {
-          best = distance;
-          best_rotation = r;
-        }
-      }
-      if (best <= max_correction) {
-        id = m;
-        rotation = best_rotation;
-        return true;
-      }
-    }
-    return false;
-  }
-  for (int m = 0; m < dictionary.bytesList.rows; ++m) {
-    const uchar* code = dictionary.bytesList.ptr(m);
+  uint64_t candidate = 0;
+  for (int k = 0; k < nbytes; ++k) candidate = (candidate << 8) | packed[k];
+  const uint64_t* code = codes.code.data();
+  for (int m = 0; m < dictionary.bytesList.rows; ++m, code += 4) {
     int best = marker_size * marker_size + 1, best_rotation = -1;
     for (int r = 0; r < 4; ++r) {
-      int distance = 0;
-      for (int k = 0; k < nbytes; ++k) distance += PopCount(code[r * nbytes + k] ^ packed[k]);
+      const int distance = PopCount(code[r] ^ candidate);
       if (distance < best) {
         best = distance;
         best_rotation = r;
