@@ -6,7 +6,7 @@ PACKAGES=(
   build-essential cmake pkg-config catkin python3-catkin-pkg python3-empy
   ros-core-dev rosbash libnodeletlib-dev libnodelet-dev libnodeletlib-tools
   libcv-bridge-dev libimage-transport-dev libimage-geometry-dev libcamera-calibration-parsers-dev
-  libtf2-ros-dev libtf2-geometry-msgs-dev libpcl-conversions-dev libmessage-filters-dev
+  libtf2-ros-dev libtf2-geometry-msgs-dev libmessage-filters-dev
   librostest-dev python3-rostest python3-roslaunch python3-rosbag librosbag-dev python3-roslz4 libroslz4-dev
   python3-rospy python3-sensor-msgs python3-std-msgs python3-geometry-msgs
   libopencv-dev libopencv-contrib-dev
