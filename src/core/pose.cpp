@@ -158,7 +158,7 @@ double Median(std::vector<double> values) {
 // nothing measured it.
 cv::Matx33d FacingCamera(const cv::Vec3d& position) {
   const cv::Vec3d z = -cv::normalize(position);
-  cv::Vec3d x = cv::Vec3d(0, 1, 0).cross(z);  // camera "down" x towards-camera = marker right
+  cv::Vec3d x = z.cross(cv::Vec3d(0, 1, 0));  // towards-camera x camera-down = marker right
   if (cv::norm(x) < 1e-9) x = cv::Vec3d(1, 0, 0);
   x = cv::normalize(x);
   const cv::Vec3d y = z.cross(x);

@@ -97,6 +97,8 @@ TEST(PointCloud, FewPointsGiveCentreWithoutNormalAndNeverNan) {
   EXPECT_FALSE(s.tag.cloud.has_normal);
   EXPECT_NEAR(s.tag.distance, 2.0, 0.01);
   EXPECT_TRUE(std::isfinite(s.tag.rvec[0]) && std::isfinite(s.tag.rvec[1]) && std::isfinite(s.tag.rvec[2]));
+  // Nothing measured the orientation: the guess faces the camera upright (marker x right, y up).
+  EXPECT_LE(test::RotationError(s.tag.rvec, marker.rvec), 1.0 * kDeg);
 
   options.min_points = 16;
   ArucoTag fresh = s.tag;
