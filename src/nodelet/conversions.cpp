@@ -149,10 +149,11 @@ cv::Mat ToBgrCopy(const ImageView& view) {
       cv::cvtColor(view.pixels, bgr, cv::COLOR_GRAY2BGR);
       break;
     case PixelFormat::kMono16: {
-      double max_value = 0.0;
-      cv::minMaxLoc(view.pixels, nullptr, &max_value);
+      // The core's own 16-to-8-bit scaling, without the optional steps, so the overlay looks as shot.
+      PreprocessOptions plain;
+      plain.format = PixelFormat::kMono16;
       cv::Mat grey;
-      view.pixels.convertTo(grey, CV_8U, max_value > 0.0 ? 255.0 / max_value : 1.0);
+      PreprocessFrame(view.pixels, grey, plain);
       cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
       break;
     }
