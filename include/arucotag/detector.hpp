@@ -71,6 +71,12 @@ struct DetectorConfig {
   bool tracking = true;
   int full_search_interval = 8;  ///< frames, >= 1: bound on the delay before a new small marker is found
 
+  /// With corner_refinement kEdge: markers whose mean side is shorter than this (px) are refined
+  /// further by fitting their whole decoded pattern (RefineCornersOnPattern), 0.2-0.5 ms each. Below
+  /// about 50 px the border alone leaves corners tenths of a pixel off and the pose flips; the fit
+  /// brings them to about 0.02 px. 0 turns it off.
+  int pattern_fit_max_side = 56;
+
   std::vector<int> allowed_ids;  ///< when not empty, only these ids are reported
   std::vector<int> ignored_ids;  ///< never reported (applied after allowed_ids)
   double default_side_length = 0.15;   ///< m, for ids not in side_lengths
@@ -83,6 +89,11 @@ const std::vector<std::string>& DictionaryNames();
 /// Maps a dictionary name to cv::aruco::PREDEFINED_DICTIONARY_NAME; throws arucotag::Error listing
 /// the valid names on an unknown one.
 int DictionaryFromName(const std::string& name);
+
+/// The cells of marker `id` including `border_bits` of black border on each side, as a square
+/// CV_8UC1 matrix in the marker's own orientation (row 0 along the top edge, TL to TR), 1 = black,
+/// 0 = white. Throws arucotag::Error when the id is not in the dictionary.
+cv::Mat MarkerCells(const cv::aruco::Dictionary& dictionary, int id, int border_bits = 1);
 
 /// Owns the cv::aruco dictionary and parameters built from a DetectorConfig. Construction validates
 /// the whole configuration and throws arucotag::Error naming the first bad field, so a running

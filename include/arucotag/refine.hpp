@@ -18,4 +18,16 @@ namespace arucotag {
 /// corners were moved in the last pass.
 int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells);
 
+/// Moves the four corners so that the marker's known pattern, projected through the homography they
+/// define, explains the grey values of every pixel of the marker and of half a cell of its quiet
+/// zone: each pixel is modelled as brightness (with a linear gradient) plus contrast times the exact
+/// fraction of its area covered by black cells, fitted by damped Gauss-Newton with Huber weights.
+/// It uses every cell boundary, not only the outer border, so it is the refinement that decides the
+/// pose of small (15-60 px) markers. `black` is the marker's cells including its border, CV_8UC1,
+/// square, non-zero = black (see MarkerCells); corners are in cv::aruco order and should already be
+/// within about a pixel (RefineCornersOnEdges). Returns false and leaves the corners as they were
+/// when the fit cannot be trusted: marker mostly outside the image, no contrast, a fit that moves a
+/// corner more than a pixel or leaves a residual over a quarter of the contrast (occlusion).
+bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners);
+
 }  // namespace arucotag

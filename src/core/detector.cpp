@@ -66,6 +66,7 @@ void Validate(const DetectorConfig& c) {
   Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
           "corner_refinement_min_accuracy", "must be > 0");
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
+  Require(c.pattern_fit_max_side >= 0, "pattern_fit_max_side", "must be >= 0 px (0 turns the pattern fit off)");
   Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
   for (const auto& [id, side] : c.side_lengths) {
     Require(Finite(side) && side > 0.0, "side_lengths",
@@ -204,6 +205,19 @@ bool Detector::Accepts(int id) const {
   return !contains(config_.ignored_ids);
 }
 
+cv::Mat MarkerCells(const cv::aruco::Dictionary& dictionary, int id, int border_bits) {
+  if (id < 0 || id >= dictionary.bytesList.rows) {
+    throw Error("MarkerCells: id " + std::to_string(id) + " is not in the dictionary (0.." +
+                std::to_string(dictionary.bytesList.rows - 1) + ")");
+  }
+  const int bits = dictionary.markerSize;
+  cv::Mat cells(bits + 2 * border_bits, bits + 2 * border_bits, CV_8UC1, cv::Scalar(1));
+  // getBitsFromByteList gives 1 for a white bit (drawMarker paints it 255).
+  const cv::Mat white = cv::aruco::Dictionary::getBitsFromByteList(dictionary.bytesList.rowRange(id, id + 1), bits);
+  cells(cv::Rect(border_bits, border_bits, bits, bits)).setTo(0, white);
+  return cells;
+}
+
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
   if (frame.empty()) {
     throw Error("Detect: empty image");
@@ -240,11 +254,22 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters);
     for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
   }
-  if (detector.config().corner_refinement == CornerRefinement::kEdge) {
-    // Tags are independent: refine them on all cores (tens of microseconds each).
-    const int cells = detector.dictionary()->markerSize + 2 * detector.config().marker_border_bits;
+  const DetectorConfig& config = detector.config();
+  if (config.corner_refinement == CornerRefinement::kEdge) {
+    // Tags are independent: refine them on all cores (tens of microseconds each, a few hundred with
+    // the pattern fit).
+    const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
     cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
-      for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+      for (int i = range.start; i < range.end; ++i) {
+        auto& corners = tags[i].corners;
+        RefineCornersOnEdges(grey, corners, cells);
+        double perimeter = 0.0;
+        for (int k = 0; k < 4; ++k) perimeter += cv::norm(corners[k] - corners[(k + 1) % 4]);
+        if (perimeter < 4.0 * config.pattern_fit_max_side) {
+          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tags[i].id, config.marker_border_bits),
+                                 corners);
+        }
+      }
     });
   }
   return tags;

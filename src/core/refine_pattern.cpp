@@ -1,0 +1,413 @@
+// Corner refinement by fitting the decoded marker's whole black-and-white pattern to the image.
+//
+// The edge fit (refine_edges.cpp) sees only the outer border next to each corner. A marker 15-40 px
+// wide has few pixels there, and its pose (tilt, and which of the two planar poses is right) hangs
+// on differences of a few thousandths of a pixel between its sides. Every cell boundary inside the
+// marker is also known once the id is: this fits the four corners (the homography they define) so
+// that the exact pixel-area coverage of the black cells, times a contrast plus a brightness and a
+// brightness gradient, matches the grey values of all pixels of the marker and a strip of its quiet
+// zone (Gauss-Newton with Levenberg damping and Huber weights). Coverage and its derivatives are
+// exact: each pixel square is clipped against each projected cell, and moving a cell edge changes
+// the covered area by the length of that edge inside the pixel.
+#include <arucotag/refine.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+
+namespace arucotag {
+
+namespace {
+
+using Vec2 = cv::Point2d;
+
+constexpr int kParams = 12;
+// px: edge-refined corners of markers under 20 px, seen at 60 degrees, start up to 1.3 px off.
+constexpr double kMaxMove = 2.0;
+constexpr int kMaxIterations = 20;
+constexpr double kConverged = 1e-4;  // px: a step this small no longer changes the pose  // 8 corner coordinates, brightness, contrast, brightness gradient x and y
+
+double Cross(const Vec2& a, const Vec2& b) { return a.x * b.y - a.y * b.x; }
+
+// Area of the pixel square [x0, x0 + 1] x [y0, y0 + 1] inside the convex quad q (orientation s = +1
+// when q's shoelace area is positive). Sutherland-Hodgman against the quad's four edges.
+double ClippedArea(const std::array<Vec2, 4>& q, double s, double x0, double y0) {
+  Vec2 a[12], b[12];
+  int n = 4;
+  a[0] = {x0, y0};
+  a[1] = {x0 + 1, y0};
+  a[2] = {x0 + 1, y0 + 1};
+  a[3] = {x0, y0 + 1};
+  Vec2* in = a;
+  Vec2* out = b;
+  for (int e = 0; e < 4 && n > 0; ++e) {
+    const Vec2 p = q[e], d = q[(e + 1) % 4] - q[e];
+    int m = 0;
+    for (int i = 0; i < n; ++i) {
+      const Vec2& u = in[i];
+      const Vec2& v = in[(i + 1) % n];
+      const double su = s * Cross(d, u - p), sv = s * Cross(d, v - p);
+      if (su >= 0) out[m++] = u;
+      if ((su >= 0) != (sv >= 0)) out[m++] = u + (v - u) * (su / (su - sv));
+    }
+    n = m;
+    std::swap(in, out);
+  }
+  double area = 0.0;
+  for (int i = 0; i < n; ++i) area += Cross(in[i], in[(i + 1) % n]);
+  return 0.5 * std::abs(area);
+}
+
+// Parameter range [t0, t1] of segment a + t (b - a), t in [0, 1], inside the square
+// [x0, x0 + 1] x [y0, y0 + 1] (Liang-Barsky); false when it misses.
+bool SegmentInSquare(const Vec2& a, const Vec2& b, double x0, double y0, double& t0, double& t1) {
+  t0 = 0.0;
+  t1 = 1.0;
+  const double d[2] = {b.x - a.x, b.y - a.y};
+  const double lo[2] = {x0 - a.x, y0 - a.y};
+  for (int k = 0; k < 2; ++k) {
+    const double hi = lo[k] + 1.0;
+    if (std::abs(d[k]) < 1e-12) {
+      if (lo[k] > 0 || hi < 0) return false;
+      continue;
+    }
+    double ta = lo[k] / d[k], tb = hi / d[k];
+    if (ta > tb) std::swap(ta, tb);
+    t0 = std::max(t0, ta);
+    t1 = std::min(t1, tb);
+    if (t0 >= t1) return false;
+  }
+  return true;
+}
+
+// Homography taking grid coordinates (u, v) in [0, cells]^2 to the image, with the grid's corners
+// (0, 0), (cells, 0), (cells, cells), (0, cells) at corners[0..3] (the closed-form square-to-quad
+// map, in double precision).
+cv::Matx33d GridToImage(const std::array<Vec2, 4>& c, int cells) {
+  const double sx = c[0].x - c[1].x + c[2].x - c[3].x, sy = c[0].y - c[1].y + c[2].y - c[3].y;
+  const double dx1 = c[1].x - c[2].x, dx2 = c[3].x - c[2].x, dy1 = c[1].y - c[2].y, dy2 = c[3].y - c[2].y;
+  const double det = dx1 * dy2 - dx2 * dy1;
+  const double g = (sx * dy2 - dx2 * sy) / det, h = (dx1 * sy - sx * dy1) / det;
+  const cv::Matx33d unit(c[1].x - c[0].x + g * c[1].x, c[3].x - c[0].x + h * c[3].x, c[0].x,
+                         c[1].y - c[0].y + g * c[1].y, c[3].y - c[0].y + h * c[3].y, c[0].y,  //
+                         g, h, 1.0);
+  const double k = 1.0 / cells;
+  return unit * cv::Matx33d(k, 0, 0, 0, k, 0, 0, 0, 1);
+}
+
+Vec2 Apply(const cv::Matx33d& h, double u, double v) {
+  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+  return {(h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w};
+}
+
+// The (cells+1)^2 grid vertices for the corners, relative to `origin` (keeps float round-off out).
+void GridVertices(const std::array<Vec2, 4>& corners, const Vec2& origin, int cells, std::vector<Vec2>& out) {
+  std::array<Vec2, 4> local;
+  for (int i = 0; i < 4; ++i) local[i] = corners[i] - origin;
+  const cv::Matx33d h = GridToImage(local, cells);
+  out.resize((cells + 1) * (cells + 1));
+  for (int v = 0; v <= cells; ++v) {
+    for (int u = 0; u <= cells; ++u) out[v * (cells + 1) + u] = Apply(h, u, v) + origin;
+  }
+}
+
+struct Sample {
+  int x, y;
+  double grey;
+};
+
+class PatternFit {
+ public:
+  PatternFit(const cv::Mat& grey, const cv::Mat& black, int cells, const std::array<Vec2, 4>& corners)
+      : grey_(grey), black_(black), cells_(cells) {
+    for (const Vec2& c : corners) origin_ += c * 0.25;
+    SelectPixels(corners);
+  }
+
+  size_t size() const { return samples_.size(); }
+
+  // Model coverage and its derivative (8 corner coordinates) for every sample.
+  void Coverage(const std::array<Vec2, 4>& corners, std::vector<double>& cover, std::vector<double>& jac) {
+    const int n = cells_ + 1;
+    GridVertices(corners, origin_, cells_, vertices_);
+    // Vertex derivatives by central differences: the grid is a smooth function of the corners.
+    vertex_jac_.assign(vertices_.size() * 16, 0.0);
+    constexpr double kStep = 1e-4;
+    for (int k = 0; k < 8; ++k) {
+      std::array<Vec2, 4> plus = corners, minus = corners;
+      (k % 2 == 0 ? plus[k / 2].x : plus[k / 2].y) += kStep;
+      (k % 2 == 0 ? minus[k / 2].x : minus[k / 2].y) -= kStep;
+      GridVertices(plus, origin_, cells_, plus_);
+      GridVertices(minus, origin_, cells_, minus_);
+      for (size_t i = 0; i < vertices_.size(); ++i) {
+        vertex_jac_[i * 16 + k] = (plus_[i].x - minus_[i].x) / (2 * kStep);
+        vertex_jac_[i * 16 + 8 + k] = (plus_[i].y - minus_[i].y) / (2 * kStep);
+      }
+    }
+    cover.assign(samples_.size(), 0.0);
+    jac.assign(samples_.size() * 8, 0.0);
+    // A run of black cells along a row is one convex quad under the homography: fewer, larger
+    // polygons and no shared edges inside a run.
+    for (int row = 0; row < cells_; ++row) {
+      const uchar* bits = black_.ptr<uchar>(row);
+      for (int col = 0; col < cells_;) {
+        if (!bits[col]) {
+          ++col;
+          continue;
+        }
+        int end = col;
+        while (end < cells_ && bits[end]) ++end;
+        const int ids[4] = {row * n + col, row * n + end, (row + 1) * n + end, (row + 1) * n + col};
+        std::array<Vec2, 4> q;
+        for (int i = 0; i < 4; ++i) q[i] = vertices_[ids[i]];
+        AddQuad(q, ids, cover, jac);
+        col = end;
+      }
+    }
+  }
+
+  const std::vector<Sample>& samples() const { return samples_; }
+  const Vec2& origin() const { return origin_; }
+
+ private:
+  // Pixels whose centre lies on the marker or within half a cell outside it (the quiet zone that
+  // every printed marker needs), fully inside the image.
+  void SelectPixels(const std::array<Vec2, 4>& corners) {
+    std::array<Vec2, 4> local;
+    for (int i = 0; i < 4; ++i) local[i] = corners[i] - origin_;
+    const cv::Matx33d to_grid = GridToImage(local, cells_).inv();
+    constexpr double kMargin = 0.5;
+    std::array<Vec2, 4> outer;
+    const cv::Matx33d to_image = to_grid.inv();
+    const double lo = -kMargin, hi = cells_ + kMargin;
+    outer[0] = Apply(to_image, lo, lo);
+    outer[1] = Apply(to_image, hi, lo);
+    outer[2] = Apply(to_image, hi, hi);
+    outer[3] = Apply(to_image, lo, hi);
+    double x0 = 1e9, x1 = -1e9, y0 = 1e9, y1 = -1e9;
+    for (const Vec2& p : outer) {
+      x0 = std::min(x0, p.x + origin_.x);
+      x1 = std::max(x1, p.x + origin_.x);
+      y0 = std::min(y0, p.y + origin_.y);
+      y1 = std::max(y1, p.y + origin_.y);
+    }
+    roi_ = cv::Rect(cv::Point(static_cast<int>(std::floor(x0)), static_cast<int>(std::floor(y0))),
+                    cv::Point(static_cast<int>(std::ceil(x1)) + 1, static_cast<int>(std::ceil(y1)) + 1)) &
+           cv::Rect(1, 1, grey_.cols - 2, grey_.rows - 2);
+    index_.assign(static_cast<size_t>(roi_.area()), -1);
+    for (int y = roi_.y; y < roi_.y + roi_.height; ++y) {
+      const uchar* row = grey_.ptr<uchar>(y);
+      for (int x = roi_.x; x < roi_.x + roi_.width; ++x) {
+        const Vec2 g = Apply(to_grid, x - origin_.x, y - origin_.y);
+        if (g.x < lo || g.x > hi || g.y < lo || g.y > hi) continue;
+        index_[(y - roi_.y) * roi_.width + (x - roi_.x)] = static_cast<int>(samples_.size());
+        samples_.push_back({x, y, static_cast<double>(row[x])});
+      }
+    }
+  }
+
+  void AddQuad(const std::array<Vec2, 4>& q, const int ids[4], std::vector<double>& cover, std::vector<double>& jac) {
+    double shoelace = 0.0;
+    for (int i = 0; i < 4; ++i) shoelace += Cross(q[i], q[(i + 1) % 4]);
+    const double s = shoelace >= 0 ? 1.0 : -1.0;
+    double qy0 = q[0].y, qy1 = q[0].y;
+    for (const Vec2& p : q) {
+      qy0 = std::min(qy0, p.y);
+      qy1 = std::max(qy1, p.y);
+    }
+    // Pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5].
+    const int ya = std::max(roi_.y, static_cast<int>(std::floor(qy0 + 0.5)));
+    const int yb = std::min(roi_.y + roi_.height - 1, static_cast<int>(std::ceil(qy1 - 0.5)));
+    for (int y = ya; y <= yb; ++y) {
+      // The quad's x extent within this pixel row: its vertices in the band and its edges' crossings
+      // of the band's two lines.
+      const double band0 = y - 0.5, band1 = y + 0.5;
+      double qx0 = 1e18, qx1 = -1e18;
+      for (int e = 0; e < 4; ++e) {
+        const Vec2 &a = q[e], &b = q[(e + 1) % 4];
+        if (a.y >= band0 && a.y <= band1) {
+          qx0 = std::min(qx0, a.x);
+          qx1 = std::max(qx1, a.x);
+        }
+        for (const double line : {band0, band1}) {
+          if ((a.y - line) * (b.y - line) < 0) {
+            const double x = a.x + (b.x - a.x) * (line - a.y) / (b.y - a.y);
+            qx0 = std::min(qx0, x);
+            qx1 = std::max(qx1, x);
+          }
+        }
+      }
+      if (qx0 > qx1) continue;
+      const int xa = std::max(roi_.x, static_cast<int>(std::floor(qx0 + 0.5)));
+      const int xb = std::min(roi_.x + roi_.width - 1, static_cast<int>(std::ceil(qx1 - 0.5)));
+      for (int x = xa; x <= xb; ++x) {
+        const int k = index_[(y - roi_.y) * roi_.width + (x - roi_.x)];
+        if (k < 0) continue;
+        const double px = x - 0.5, py = y - 0.5;
+        // Inside every edge with all four pixel corners: fully covered, no boundary to move.
+        bool inside = true, outside = false;
+        for (int e = 0; e < 4 && !outside; ++e) {
+          const Vec2 d = q[(e + 1) % 4] - q[e];
+          int in = 0;
+          for (int c = 0; c < 4; ++c) {
+            const Vec2 corner(px + (c == 1 || c == 2), py + (c >= 2));
+            in += s * Cross(d, corner - q[e]) >= 0;
+          }
+          inside = inside && in == 4;
+          outside = in == 0;
+        }
+        if (outside) continue;
+        if (inside) {
+          cover[k] += 1.0;
+          continue;
+        }
+        cover[k] += ClippedArea(q, s, px, py);
+        double* row = &jac[k * 8];
+        for (int e = 0; e < 4; ++e) {
+          const Vec2 &a = q[e], &b = q[(e + 1) % 4];
+          double t0, t1;
+          if (!SegmentInSquare(a, b, px, py, t0, t1)) continue;
+          const Vec2 d = b - a;
+          // Outward unit normal times edge length: (dy, -dx) for a positively oriented quad.
+          const Vec2 nl(s * d.y, -s * d.x);
+          const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
+          const double* ja = &vertex_jac_[ids[e] * 16];
+          const double* jb = &vertex_jac_[ids[(e + 1) % 4] * 16];
+          for (int p = 0; p < 8; ++p) {
+            row[p] += wa * (nl.x * ja[p] + nl.y * ja[8 + p]) + wb * (nl.x * jb[p] + nl.y * jb[8 + p]);
+          }
+        }
+      }
+    }
+  }
+
+  const cv::Mat& grey_;
+  const cv::Mat& black_;
+  const int cells_;
+  Vec2 origin_;
+  cv::Rect roi_;
+  std::vector<int> index_;
+  std::vector<Sample> samples_;
+  std::vector<Vec2> vertices_, plus_, minus_;
+  std::vector<double> vertex_jac_;
+};
+
+// Weighted residuals, normal equations and cost of the model at `params` (corners in params[0..7]).
+double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<double, kParams, kParams>* jtj,
+              cv::Matx<double, kParams, 1>* jtr) {
+  std::array<Vec2, 4> corners;
+  for (int i = 0; i < 4; ++i) corners[i] = {params[2 * i], params[2 * i + 1]};
+  thread_local std::vector<double> cover, jac;
+  fit.Coverage(corners, cover, jac);
+  double normal[kParams][kParams] = {}, rhs[kParams] = {};
+  double cost = 0.0;
+  const auto& samples = fit.samples();
+  for (size_t k = 0; k < samples.size(); ++k) {
+    const double dx = samples[k].x - fit.origin().x, dy = samples[k].y - fit.origin().y;
+    const double model = params[8] + params[9] * cover[k] + params[10] * dx + params[11] * dy;
+    const double r = samples[k].grey - model;
+    // Huber: pixels the pattern cannot explain (a glint, an occluder) count linearly.
+    const double a = std::abs(r);
+    const double w = a <= scale ? 1.0 : scale / a;
+    cost += a <= scale ? 0.5 * r * r : scale * (a - 0.5 * scale);
+    if (!jtj) continue;
+    double j[kParams];
+    for (int p = 0; p < 8; ++p) j[p] = params[9] * jac[k * 8 + p];
+    j[8] = 1.0;
+    j[9] = cover[k];
+    j[10] = dx;
+    j[11] = dy;
+    // Pixels no cell boundary crosses have no corner derivatives: only the photometric block.
+    const bool boundary = std::any_of(j, j + 8, [](double v) { return v != 0.0; });
+    for (int p = boundary ? 0 : 8; p < kParams; ++p) {
+      const double wp = w * j[p];
+      rhs[p] += wp * r;
+      for (int q = p; q < kParams; ++q) normal[p][q] += wp * j[q];
+    }
+  }
+  if (jtj) {
+    for (int p = 0; p < kParams; ++p) {
+      (*jtr)(p) = rhs[p];
+      for (int q = p; q < kParams; ++q) (*jtj)(p, q) = (*jtj)(q, p) = normal[p][q];
+    }
+  }
+  return cost;
+}
+
+}  // namespace
+
+bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
+  CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
+  const int cells = black.rows;
+  std::array<Vec2, 4> start;
+  for (int i = 0; i < 4; ++i) start[i] = corners[i];
+  PatternFit fit(grey, black, cells, start);
+  if (fit.size() < static_cast<size_t>(4 * cells * cells)) return false;  // mostly off the image
+
+  double params[kParams];
+  for (int i = 0; i < 4; ++i) {
+    params[2 * i] = start[i].x;
+    params[2 * i + 1] = start[i].y;
+  }
+  // Brightness and contrast at the start: a linear least-squares fit with the corners held.
+  {
+    std::vector<double> cover, jac;
+    fit.Coverage(start, cover, jac);
+    cv::Matx22d a = cv::Matx22d::zeros();
+    cv::Vec2d b(0, 0);
+    for (size_t k = 0; k < fit.size(); ++k) {
+      const cv::Vec2d j(1.0, cover[k]);
+      a += j * j.t();
+      b += j * fit.samples()[k].grey;
+    }
+    const cv::Vec2d x = a.inv() * b;
+    params[8] = x[0];
+    params[9] = x[1];
+    params[10] = params[11] = 0.0;
+  }
+  const double contrast = std::abs(params[9]);
+  if (!(contrast > 10.0)) return false;  // no pattern to fit (or a wrong id)
+  const double scale = 0.1 * contrast;    // Huber threshold: a tenth of the black-white step
+
+  double lambda = 1e-3;
+  cv::Matx<double, kParams, kParams> jtj, trial_jtj;
+  cv::Matx<double, kParams, 1> jtr, trial_jtr;
+  double cost = Normal(fit, params, scale, &jtj, &jtr);
+  for (int iteration = 0; iteration < kMaxIterations; ++iteration) {
+    cv::Matx<double, kParams, kParams> damped = jtj;
+    for (int p = 0; p < kParams; ++p) damped(p, p) += lambda * std::max(jtj(p, p), 1e-9);
+    cv::Matx<double, kParams, 1> step;
+    if (!cv::solve(damped, jtr, step, cv::DECOMP_CHOLESKY)) return false;
+    double trial[kParams];
+    for (int p = 0; p < kParams; ++p) trial[p] = params[p] + step(p);
+    // Steps are mostly accepted: the trial's normal equations are the next iteration's.
+    const double trial_cost = Normal(fit, trial, scale, &trial_jtj, &trial_jtr);
+    if (trial_cost < cost) {
+      std::copy(trial, trial + kParams, params);
+      cost = trial_cost;
+      jtj = trial_jtj;
+      jtr = trial_jtr;
+      lambda = std::max(lambda * 0.1, 1e-7);
+      double largest = 0.0;
+      for (int p = 0; p < 8; ++p) largest = std::max(largest, std::abs(step(p)));
+      if (largest < kConverged) break;
+    } else {
+      lambda *= 10.0;
+      if (lambda > 1e6) break;
+    }
+  }
+  // A fit that wandered off (further than the start can be wrong by) or explains the pixels badly is
+  // not trusted.
+  const double rms = std::sqrt(2.0 * cost / static_cast<double>(fit.size()));
+  if (!(rms < 0.25 * contrast) || std::abs(params[9]) < 0.5 * contrast) return false;
+  for (int i = 0; i < 4; ++i) {
+    if (std::hypot(params[2 * i] - start[i].x, params[2 * i + 1] - start[i].y) > kMaxMove) return false;
+  }
+  for (int i = 0; i < 4; ++i) {
+    corners[i] = cv::Point2f(static_cast<float>(params[2 * i]), static_cast<float>(params[2 * i + 1]));
+  }
+  return true;
+}
+
+}  // namespace arucotag
