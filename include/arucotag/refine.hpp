@@ -21,13 +21,14 @@ int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corner
 /// Moves the four corners so that the marker's known pattern, projected through the homography they
 /// define, explains the grey values of every pixel of the marker and of half a cell of its quiet
 /// zone: each pixel is modelled as brightness (with a linear gradient) plus contrast times the exact
-/// fraction of its area covered by black cells, fitted by damped Gauss-Newton with Huber weights.
-/// It uses every cell boundary, not only the outer border, so it is the refinement that decides the
-/// pose of small (15-60 px) markers. `black` is the marker's cells including its border, CV_8UC1,
-/// square, non-zero = black (see MarkerCells); corners are in cv::aruco order and should already be
-/// within about a pixel (RefineCornersOnEdges). Returns false and leaves the corners as they were
-/// when the fit cannot be trusted: marker mostly outside the image, no contrast, a fit that moves a
-/// corner more than a pixel or leaves a residual over a quarter of the contrast (occlusion).
+/// fraction of its area covered by black cells, blurred by a Gaussian whose width is fitted too
+/// (damped Gauss-Newton, Huber weights). It uses every cell boundary, not only the outer border, so
+/// it is what makes the pose of small (15-56 px) markers right. `black` is the marker's cells
+/// including its border, CV_8UC1, square, non-zero = black (see MarkerCells); corners are in cv::aruco
+/// order and should be within about a pixel already (RefineCornersOnEdges). Returns false and leaves
+/// the corners as they were when the fit cannot be trusted: marker mostly outside the image, no
+/// contrast, a fit that moves a corner more than 2 px, or one that leaves over 5 % of the pixels off
+/// by more than a quarter of the black-white contrast (occlusion, a wrong pattern, ink that bleeds).
 bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners);
 
 }  // namespace arucotag

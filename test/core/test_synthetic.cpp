@@ -90,42 +90,42 @@ std::string Describe(const PoseCase& c) {
          std::to_string(c.roll_deg) + (c.distorted ? " distorted" : "");
 }
 
-// Edge-refined corners against the projected truth: within 0.1 px (measured 0.025) from 0.5 to 2 m
-// at every tilt and roll, with and without distortion. A 0.15 m marker at 4 m is 38 px wide; seen at
-// 60 degrees its short sides are 19 px and its border cells 3 px, and there 0.1 px stops (0.45 measured).
+// Refined corners against the projected truth: within 0.1 px from 0.5 to 10 m at every tilt and
+// roll, with and without distortion. Markers over 56 px get the edge fit (measured 0.03 px), smaller
+// ones the whole-pattern fit (0.03 px at 4 m, 38 px wide, down to 15 px at 10 m).
 TEST(Synthetic, CornersWithinATenthOfAPixel) {
-  double worst_near = 0.0, worst_far = 0.0;
+  double worst = 0.0;
+  int found = 0, cases = 0;
   for (const auto& c : PoseCases()) {
-    if (c.range > 4.0) continue;  // tiny markers: checked through the pose below
     const sim::Camera camera = test::RoverCamera(c.distorted);
     const sim::Marker marker = Place(c);
     const auto tags = test::RenderAndDetect(camera, {marker});
+    ++cases;
+    if (c.range >= 10.0 && tags.empty()) continue;  // see PnpPoseWithinHalfPercentAndOneDegree
     ASSERT_EQ(tags.size(), 1u) << Describe(c);
+    ++found;
     EXPECT_EQ(tags[0].id, 7);
     const double error = MaxCornerError(tags[0], sim::ProjectCorners(camera, marker));
-    const bool near = c.range <= 2.0;
-    (near ? worst_near : worst_far) = std::max(near ? worst_near : worst_far, error);
-    EXPECT_LE(error, near ? 0.1 : 0.5) << Describe(c);
+    worst = std::max(worst, error);
+    EXPECT_LE(error, 0.1) << Describe(c);
   }
-  std::printf("worst corner error: %.3f px (0.5-2 m), %.3f px (4 m)\n", worst_near, worst_far);
+  std::printf("worst corner error %.3f px over %d of %d views\n", worst, found, cases);
 }
 
-// Translation within 0.5 % of range and rotation within 1 degree out to 4 m (38 px marker), every
-// tilt and roll. Further out the marker is 26 px (7 m) and 15 px (10 m): corners good to a few
-// tenths of a pixel put range within 1 % and 4 %, and the two planar poses reproject within
-// hundredths of a pixel of each other (IPPE's ambiguity), so rotation is not determined by the
-// corners at all; the point cloud (fused pose) is what removes the flip there.
+// Translation within 0.5 % of range and rotation within 1 degree from 0.5 to 10 m, every tilt and
+// roll: what the issue asks, on every view the detector finds. Without the pattern fit the 7-10 m
+// views (26-15 px) were 1-4 % off in range and flipped by up to 74 degrees.
 TEST(Synthetic, PnpPoseWithinHalfPercentAndOneDegree) {
   std::printf("| range m | tilt deg | roll deg | distorted | range error %% | rotation error deg |\n");
+  double worst_range = 0.0, worst_rotation = 0.0;
   for (const auto& c : PoseCases()) {
     const sim::Camera camera = test::RoverCamera(c.distorted);
     const sim::Marker marker = Place(c);
     auto tags = test::RenderAndDetect(camera, {marker});
-    if (c.range >= 7.0 && c.tilt_deg >= 60.0) {
-      // 26 px or less and foreshortened to half that: past what any ArUco detector resolves.
+    if (c.range >= 10.0 && tags.empty()) {
+      std::printf("| %.1f | %.0f | %.0f | %d | not detected | |\n", c.range, c.tilt_deg, c.roll_deg, c.distorted);
       continue;
     }
-    if (c.range >= 10.0 && tags.empty()) continue;  // 15 px: found in most views, not all
     ASSERT_EQ(tags.size(), 1u) << Describe(c);
     ASSERT_TRUE(EstimatePoseFromPNP(test::ToModel(camera), tags[0]));
     const ArucoTag& tag = tags[0];
@@ -133,17 +133,49 @@ TEST(Synthetic, PnpPoseWithinHalfPercentAndOneDegree) {
     const double rotation_error = test::RotationError(tag.rvec, marker.rvec) / kDeg;
     std::printf("| %.1f | %.0f | %.0f | %d | %.3f | %.2f |\n", c.range, c.tilt_deg, c.roll_deg, c.distorted,
                 100.0 * (tag.distance - range) / range, rotation_error);
+    worst_range = std::max(worst_range, cv::norm(tag.tvec - marker.tvec) / range);
+    worst_rotation = std::max(worst_rotation, rotation_error);
     EXPECT_EQ(tag.pose_source, PoseSource::kPnp);
-    // Measured: <= 0.18 % to 4 m, <= 0.8 % at 7 m (26 px marker), <= 3.4 % at 10 m (15 px).
-    const double translation_bound = c.range <= 4.0 ? 0.005 : (c.range <= 7.0 ? 0.01 : 0.04);
-    EXPECT_LE(cv::norm(tag.tvec - marker.tvec), translation_bound * range) << Describe(c);
+    EXPECT_LE(cv::norm(tag.tvec - marker.tvec), 0.005 * range) << Describe(c);
+    EXPECT_LE(rotation_error, 1.0) << Describe(c);
     EXPECT_NEAR(tag.yaw, std::atan2(marker.tvec[0], marker.tvec[2]), 0.1 * kDeg) << Describe(c);
-    if (c.range <= 4.0) {
-      EXPECT_LE(rotation_error, 1.0) << Describe(c);
-    }
-    EXPECT_LT(tag.reprojection_error, c.range <= 4.0 ? 0.2 : 0.8) << Describe(c);
+    EXPECT_LT(tag.reprojection_error, 0.1) << Describe(c);
     EXPECT_EQ(tag.pnp.solutions, 2) << Describe(c);
   }
+  std::printf("worst: translation %.3f %% of range, rotation %.2f deg\n", 100.0 * worst_range, worst_rotation);
+}
+
+// A real camera blurs (sigma 0.8 px here) and adds noise (3 grey levels): the pattern fit models the
+// blur, so small markers keep corners within 0.1 px and poses within 0.5 % and 1 degree to 7 m
+// (measured 0.07 px, 0.16 %, 0.6 deg; the border-only edge fit is 0.75-1.6 px and flips). At 10 m
+// the noise alone leaves the tilt of a 15 px marker ambiguous.
+TEST(Synthetic, BlurredNoisySmallMarkers) {
+  sim::RenderOptions options;
+  options.blur_sigma = 0.8;
+  options.noise_sigma = 3.0;
+  DetectorConfig border_only;
+  border_only.pattern_fit_max_side = 0;
+  double worst_fit = 0.0, worst_edge = 0.0;
+  for (const auto& c : PoseCases()) {
+    if (c.range < 4.0 || c.range > 7.0 || c.tilt_deg >= 60.0) continue;
+    const sim::Camera camera = test::RoverCamera(c.distorted);
+    const sim::Marker marker = Place(c);
+    options.seed = static_cast<unsigned>(c.roll_deg * 10 + c.tilt_deg);
+    auto tags = test::RenderAndDetect(camera, {marker}, {}, options);
+    auto edge_tags = test::RenderAndDetect(camera, {marker}, border_only, options);
+    ASSERT_EQ(tags.size(), 1u) << Describe(c);
+    ASSERT_EQ(edge_tags.size(), 1u) << Describe(c);
+    const auto truth = sim::ProjectCorners(camera, marker);
+    worst_fit = std::max(worst_fit, MaxCornerError(tags[0], truth));
+    worst_edge = std::max(worst_edge, MaxCornerError(edge_tags[0], truth));
+    EXPECT_LE(MaxCornerError(tags[0], truth), 0.1) << Describe(c);
+    ASSERT_TRUE(EstimatePoseFromPNP(test::ToModel(camera), tags[0]));
+    EXPECT_LE(cv::norm(tags[0].tvec - marker.tvec), 0.005 * cv::norm(marker.tvec)) << Describe(c);
+    EXPECT_LE(test::RotationError(tags[0].rvec, marker.rvec), 1.0 * kDeg) << Describe(c);
+  }
+  std::printf("worst corner error, blurred and noisy 4-7 m: pattern fit %.3f px, edge only %.3f px\n", worst_fit,
+              worst_edge);
+  EXPECT_GT(worst_edge, 3.0 * worst_fit);
 }
 
 TEST(Synthetic, ExactlyFrontalTagIsNotFlipped) {

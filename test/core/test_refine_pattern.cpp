@@ -1,0 +1,137 @@
+// The whole-pattern corner fit on its own: its cell model, what it refuses, and what it repairs.
+#include <gtest/gtest.h>
+
+#include <opencv2/imgproc.hpp>
+
+#include <arucotag/refine.hpp>
+
+#include "scene.hpp"
+
+namespace arucotag {
+namespace {
+
+double MaxError(const std::array<cv::Point2f, 4>& corners, const std::array<cv::Point2f, 4>& truth) {
+  double worst = 0.0;
+  for (int i = 0; i < 4; ++i) worst = std::max(worst, cv::norm(cv::Point2d(corners[i]) - cv::Point2d(truth[i])));
+  return worst;
+}
+
+// The cells must be what cv::aruco prints: compare with drawMarker at one pixel per cell.
+TEST(PatternFit, MarkerCellsMatchTheDrawnMarker) {
+  for (const auto& [name, border] : {std::pair<std::string, int>{"DICT_4X4_50", 1}, {"DICT_6X6_250", 1},
+                                     {"DICT_APRILTAG_36h11", 2}, {"DICT_5X5_100", 1}}) {
+    const auto dictionary = cv::aruco::getPredefinedDictionary(DictionaryFromName(name));
+    for (int id : {0, 7, 23, 49}) {
+      const int cells = dictionary->markerSize + 2 * border;
+      cv::Mat drawn;
+      cv::aruco::drawMarker(dictionary, id, cells, drawn, border);
+      const cv::Mat black = MarkerCells(*dictionary, id, border);
+      ASSERT_EQ(black.rows, cells);
+      ASSERT_EQ(black.cols, cells);
+      for (int r = 0; r < cells; ++r) {
+        for (int c = 0; c < cells; ++c) {
+          EXPECT_EQ(black.at<uchar>(r, c) != 0, drawn.at<uchar>(r, c) == 0) << name << " id " << id << " cell " << r << "," << c;
+        }
+      }
+    }
+  }
+  EXPECT_THROW(MarkerCells(*cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50), 50), Error);
+  EXPECT_THROW(MarkerCells(*cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50), -1), Error);
+}
+
+struct SmallMarker {
+  cv::Mat grey;
+  std::array<cv::Point2f, 4> truth;
+};
+
+// A 0.15 m marker 7 m away, tilted: about 26 px wide.
+SmallMarker RenderSmallMarker(int id, double blur, double noise) {
+  const sim::Camera camera = test::RoverCamera();
+  const sim::Marker marker = sim::FacingCamera(id, 0.15, {0.4, -0.2, 7.0}, 35.0, 10.0, 20.0);
+  sim::RenderOptions options;
+  options.blur_sigma = blur;
+  options.noise_sigma = noise;
+  SmallMarker out;
+  PreprocessFrame(sim::RenderScene(camera, {marker}, options), out.grey);
+  out.truth = sim::ProjectCorners(camera, marker);
+  return out;
+}
+
+// From corners 0.7 px off in different directions, the fit lands within a few hundredths, sharp or
+// blurred.
+TEST(PatternFit, ConvergesFromAPoorStart) {
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  for (double blur : {0.0, 0.7, 1.2}) {
+    const SmallMarker scene = RenderSmallMarker(7, blur, 2.0);
+    std::array<cv::Point2f, 4> corners = scene.truth;
+    const cv::Point2f offsets[4] = {{0.5f, -0.5f}, {-0.6f, 0.3f}, {0.2f, 0.7f}, {-0.4f, -0.5f}};
+    for (int i = 0; i < 4; ++i) corners[i] += offsets[i];
+    ASSERT_GT(MaxError(corners, scene.truth), 0.7);
+    ASSERT_TRUE(RefineCornersOnPattern(scene.grey, MarkerCells(*dictionary, 7), corners)) << "blur " << blur;
+    EXPECT_LE(MaxError(corners, scene.truth), blur > 1.0 ? 0.1 : 0.05) << "blur " << blur;
+  }
+}
+
+// The pattern of another id does not explain the pixels: the fit refuses and leaves the corners.
+TEST(PatternFit, RefusesTheWrongPattern) {
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  const SmallMarker scene = RenderSmallMarker(7, 0.6, 2.0);
+  int refused = 0;
+  for (int other : {1, 12, 30, 44}) {
+    std::array<cv::Point2f, 4> corners = scene.truth;
+    const bool accepted = RefineCornersOnPattern(scene.grey, MarkerCells(*dictionary, other), corners);
+    refused += !accepted;
+    if (!accepted) {
+      EXPECT_EQ(corners, scene.truth);
+    }
+  }
+  EXPECT_EQ(refused, 4);
+}
+
+// Half the marker hidden behind a post: the fit refuses rather than dragging the corners.
+TEST(PatternFit, RefusesAnOccludedMarker) {
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  SmallMarker scene = RenderSmallMarker(7, 0.6, 2.0);
+  const float mid_x = 0.5f * (scene.truth[0].x + scene.truth[1].x);
+  cv::rectangle(scene.grey, cv::Point(cvRound(mid_x), 0), cv::Point(scene.grey.cols, scene.grey.rows),
+                cv::Scalar(90), cv::FILLED);
+  std::array<cv::Point2f, 4> corners = scene.truth;
+  corners[0] += cv::Point2f(0.3f, 0.2f);
+  const auto start = corners;
+  EXPECT_FALSE(RefineCornersOnPattern(scene.grey, MarkerCells(*dictionary, 7), corners));
+  EXPECT_EQ(corners, start);
+}
+
+// A marker cut by the image border, or without contrast, is left alone.
+TEST(PatternFit, RefusesMarkersOffTheImageOrWithoutContrast) {
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  const SmallMarker scene = RenderSmallMarker(7, 0.0, 0.0);
+  std::array<cv::Point2f, 4> off = scene.truth;
+  for (auto& c : off) c -= cv::Point2f(scene.truth[0].x + 25.0f, 0.0f);  // left of the image
+  const auto off_start = off;
+  EXPECT_FALSE(RefineCornersOnPattern(scene.grey, MarkerCells(*dictionary, 7), off));
+  EXPECT_EQ(off, off_start);
+  const cv::Mat flat(scene.grey.size(), CV_8UC1, cv::Scalar(128));
+  std::array<cv::Point2f, 4> corners = scene.truth;
+  EXPECT_FALSE(RefineCornersOnPattern(flat, MarkerCells(*dictionary, 7), corners));
+  EXPECT_EQ(corners, scene.truth);
+}
+
+// pattern_fit_max_side decides which markers get the fit; negative values are refused.
+TEST(PatternFit, ConfiguredBySideLength) {
+  DetectorConfig config;
+  config.pattern_fit_max_side = -1;
+  EXPECT_THROW(Detector{config}, Error);
+  const SmallMarker scene = RenderSmallMarker(7, 0.7, 2.0);
+  config.pattern_fit_max_side = 0;
+  const auto border_only = Detect(scene.grey, Detector(config));
+  config.pattern_fit_max_side = 56;
+  const auto fitted = Detect(scene.grey, Detector(config));
+  ASSERT_EQ(border_only.size(), 1u);
+  ASSERT_EQ(fitted.size(), 1u);
+  EXPECT_LE(MaxError(fitted[0].corners, scene.truth), 0.05);
+  EXPECT_GT(MaxError(border_only[0].corners, scene.truth), 0.1);
+}
+
+}  // namespace
+}  // namespace arucotag
