@@ -77,14 +77,18 @@ const Scene& EmptyScene() {
 
 // A frame where IPPE's lower-error solution is the mirror image, found with the renderer at start-up
 // (the core run on candidate frames decides, so the case survives changes to the renderer and the
-// detector): a marker about 20 px wide, tilted 20-36 degrees, 3.4-4.6 m away. The cloud's plane
-// picks the other solution.
+// detector): a marker 14-17 px wide, tilted 8-24 degrees, 5-6.2 m away, seen through a slightly
+// blurred, noisy sensor (measured: PnP picks the mirror in 16 of 300 such frames). On clean renders
+// the pattern fit resolves even 15 px markers (the synthetic core tests); with sensor noise the two
+// planar poses are within the noise, and the cloud's plane picks.
 const Scene& FlipScene() {
   static const Scene scene = [] {
     for (unsigned seed = 1; seed <= 300; ++seed) {
       sim::RenderOptions options;
       options.seed = seed;
-      const double yaw = 20.0 + 2.0 * (seed % 9), range = 3.4 + 0.1 * (seed % 13), roll = 7.0 + 30.0 * (seed % 12);
+      options.blur_sigma = 0.8;
+      options.noise_sigma = 6.0;
+      const double yaw = 8.0 + 2.0 * (seed % 9), range = 5.0 + 0.1 * (seed % 13), roll = 7.0 + 30.0 * (seed % 12);
       Scene candidate = Render({sim::FacingCamera(7, 0.15, {0.1, 0.05, range}, yaw, 0.3 * yaw, roll)}, options);
       if (arucotag::test::PnpPicksMirror(candidate.camera, candidate.markers[0], candidate.image)) return candidate;
     }
