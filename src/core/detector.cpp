@@ -7,6 +7,7 @@
 
 #include <opencv2/imgproc.hpp>
 
+#include "decode_small.hpp"
 #include "fast_detect.hpp"
 
 namespace arucotag {
@@ -251,8 +252,15 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
     // copy so concurrent calls on one Detector never race.
     const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
-    cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters);
+    std::vector<std::vector<cv::Point2f>> rejected;
+    cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
     for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
+    // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
+    // too, so both paths report the same ids.
+    for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
+                                                       *detector.parameters())) {
+      add(marker.id, marker.corners.data());
+    }
   }
   const DetectorConfig& config = detector.config();
   if (config.corner_refinement == CornerRefinement::kEdge) {

@@ -21,6 +21,8 @@
 // content, most tracked markers missing, nothing tracked) is searched whole.
 #include "fast_detect.hpp"
 
+#include "decode_small.hpp"
+
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
@@ -667,20 +669,20 @@ cv::Rect Grow(const cv::Rect& r, int pad, const cv::Size& frame) {
   return cv::Rect(r.x - pad, r.y - pad, r.width + 2 * pad, r.height + 2 * pad) & cv::Rect(cv::Point(0, 0), frame);
 }
 
-// The corners cv::aruco would start from for this marker: its candidate search (every configured
-// threshold window, same contour filters) run on a small window around the marker, keeping, as
-// _filterTooCloseCandidates does, the biggest of the quads that coincide with it. Box means come
-// from an integral image of the neighbourhood (frame edges replicated as cv::adaptiveThreshold
-// does), so the binary image is the whole frame's there. Only a ring around the marker's outline is
+// The quads cv::aruco's candidate search (every configured threshold window, same contour filters)
+// finds around `corners` (full resolution), run on a small window around them: those whose
+// bounding box matches the quad's within a few pixels, appended to `found`. Box means come from an
+// integral image of the neighbourhood (frame edges replicated as cv::adaptiveThreshold does), so
+// the binary image is the whole frame's there. Only a ring around the quad's outline is
 // thresholded: its inside is set black, which leaves the outer contour as it is and skips tracing
-// the marker's bits. Corners come back in `decoded`'s order (rotation already applied); returns
-// false when no configured window gives a quad there (a marker only the reduced levels see).
-bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad& decoded) {
+// the marker's bits.
+void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const std::array<cv::Point2f, 4>& corners,
+                     std::vector<Quad>& found) {
   const cv::Mat& grey = pyramid.images[0];
   const cv::Size frame = grey.size();
   const cv::Rect whole(cv::Point(0, 0), frame);
-  const cv::Rect box = Bounds(decoded.corners);
-  const float side = Side(decoded.corners);
+  const cv::Rect box = Bounds(corners);
+  const float side = Side(corners);
   // Outlines of one marker at different windows lie within a few pixels of each other.
   const int tolerance = std::max(3, static_cast<int>(std::ceil(0.06f * side)));
   const cv::Rect roi = Grow(box, tolerance + 2, frame);
@@ -693,10 +695,10 @@ bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad&
   cv::integral(patch, sums, CV_32S);
 
   // Per row of the region, the span deep inside the marker (its quad shrunk towards the centre).
-  const cv::Point2f centre = Centre(decoded.corners);
+  const cv::Point2f centre = Centre(corners);
   const float shrink = 1.0f - 2.0f * (tolerance + 2) / std::max(side, 1.0f);
   std::vector<cv::Point2f> core;
-  for (const auto& c : decoded.corners) core.push_back(centre + (c - centre) * shrink);
+  for (const auto& c : corners) core.push_back(centre + (c - centre) * shrink);
   std::vector<std::pair<int, int>> span(roi.height, {1, 0});
   if (shrink > 0.2f) {
     for (int yy = 0; yy < roi.height; ++yy) {
@@ -714,9 +716,6 @@ bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad&
   }
 
   const int delta = cvFloor(config.adaptive_thresh_constant);
-  const Quad* best = nullptr;
-  thread_local std::vector<Quad> found;
-  found.clear();
   for (int window = config.adaptive_thresh_win_size_min; window <= config.adaptive_thresh_win_size_max;
        window += config.adaptive_thresh_win_size_step) {
     const int w = window | 1;  // cv::aruco makes even windows odd
@@ -742,6 +741,17 @@ bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad&
     }
     QuadsFromBinary(binary, roi, frame, MakeTask(config, frame, 0, roi, w), 1, config, found, &box, tolerance);
   }
+}
+
+// The corners cv::aruco would start from for this marker: of the quads its candidate search finds
+// there (OpenCvQuadsNear), the biggest of those that coincide with it, as _filterTooCloseCandidates
+// keeps it. Corners come back in `decoded`'s order (rotation already applied); returns false when no
+// configured window gives a quad there (a marker only the reduced levels see).
+bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad& decoded) {
+  thread_local std::vector<Quad> found;
+  found.clear();
+  OpenCvQuadsNear(pyramid, config, decoded.corners, found);
+  const Quad* best = nullptr;
   for (const Quad& q : found) {
     if (TooClose(q, decoded, config.min_marker_distance_rate) && (!best || q.area > best->area)) best = &q;
   }
@@ -762,16 +772,51 @@ bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad&
   return true;
 }
 
-// Decodes every candidate, keeps one marker where several levels found the same one (the finest
-// level's, then the biggest), and refines: kSubpix with RefineCorner; for kEdge the corners
-// cv::aruco would start from (CornersAsOpenCv) are returned for Detect's edge fit, except for a
-// marker no full-resolution window finds (reduced levels only), whose scaled corners get
-// RefineCorner first so the edge fit starts within its reach.
+// Decodes a small quad cv::aruco's reading rejected (`decoded` and `id` set on success). At this
+// size a one-pixel difference of the contour flips cells of its 4-px-per-cell reading, and
+// cv::aruco's windows (3, 13, 23 px) trace slightly different contours than this search's: those
+// are traced on the quad's neighbourhood and read the same way first, so that every marker the full
+// search decodes is decoded here too. What still fails gets the second-chance decoder, on this
+// contour and on cv::aruco's (`second_chance` set: cv::aruco has no corners of its own there).
+bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
+                     const cv::aruco::DetectorParameters& p, const Quad& quad, Quad& decoded, int& id,
+                     bool& second_chance) {
+  const cv::Mat& grey = pyramid.images[0];
+  std::vector<Quad> local;
+  OpenCvQuadsNear(pyramid, config, quad.corners, local);
+  for (const Quad& q : local) {
+    int rotation = 0;
+    if (!Identify(grey, q.corners, dictionary, p, id, rotation)) continue;
+    decoded = q;
+    std::rotate(decoded.corners.begin(), decoded.corners.begin() + 4 - rotation, decoded.corners.end());
+    return true;
+  }
+  local.insert(local.begin(), quad);
+  for (const Quad& q : local) {
+    SmallMarker marker;
+    if (!DecodeSmall(grey, q.corners, dictionary, p.markerBorderBits, p.detectInvertedMarker, marker)) continue;
+    decoded = q;
+    decoded.corners = marker.corners;
+    id = marker.id;
+    second_chance = true;
+    return true;
+  }
+  return false;
+}
+
+// Decodes every candidate (small ones cv::aruco's reading rejects with DecodeSmallQuad), keeps one
+// marker where several levels found the same one (cv::aruco's reading over the second chance, then
+// the finest level's, then the biggest), and refines: kSubpix with RefineCorner; for kEdge the
+// corners cv::aruco would start from (CornersAsOpenCv) are returned for Detect's edge fit, except
+// for a marker no full-resolution window finds (reduced levels only), whose scaled corners get
+// RefineCorner first so the edge fit starts within its reach, and a second-chance marker, whose
+// decoder's corners are the edge fit's start (a 5 px cornerSubPix window spans most of it).
 std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads, const DetectorConfig& config,
                           const cv::aruco::Dictionary& dictionary, const cv::aruco::DetectorParameters& p) {
   const cv::Mat& grey = pyramid.images[0];
   std::vector<int> ids(quads.size(), -1);
   std::vector<Quad> decoded(quads);
+  std::vector<char> second_chance(quads.size(), 0);
   cv::parallel_for_(cv::Range(0, static_cast<int>(quads.size())), [&](const cv::Range& range) {
     for (int i = range.start; i < range.end; ++i) {
       int id = -1, rotation = 0;
@@ -781,6 +826,35 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       ids[i] = id;
     }
   });
+  // Small quads left over, except the cells of markers already read and the outlines around them
+  // (their quiet zones): every marker of a few cells per side has several, and a second look at
+  // each costs more than the search.
+  std::vector<int> fragile;
+  for (size_t i = 0; i < quads.size(); ++i) {
+    if (ids[i] >= 0 || !(Side(quads[i].corners) < kSmallCandidateMaxSide)) continue;
+    const cv::Point2f centre = Centre(quads[i].corners);
+    const std::vector<cv::Point2f> outline(quads[i].corners.begin(), quads[i].corners.end());
+    bool overlaps = false;
+    for (size_t k = 0; k < quads.size() && !overlaps; ++k) {
+      if (ids[k] < 0) continue;
+      const auto& c = decoded[k].corners;
+      overlaps = decoded[k].area > quads[i].area
+                     ? cv::pointPolygonTest(std::vector<cv::Point2f>(c.begin(), c.end()), centre, false) > 0.0
+                     : cv::pointPolygonTest(outline, Centre(c), false) > 0.0;
+    }
+    if (!overlaps) fragile.push_back(static_cast<int>(i));
+  }
+  cv::parallel_for_(cv::Range(0, static_cast<int>(fragile.size())), [&](const cv::Range& range) {
+    for (int f = range.start; f < range.end; ++f) {
+      const int i = fragile[f];
+      int id = -1;
+      bool second = false;
+      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second)) {
+        ids[i] = id;
+        second_chance[i] = second;
+      }
+    }
+  });
   std::vector<size_t> kept;
   for (size_t i = 0; i < quads.size(); ++i) {
     if (ids[i] < 0) continue;
@@ -788,7 +862,10 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     for (size_t& k : kept) {
       if (ids[k] != ids[i] || !TooClose(decoded[k], decoded[i], p.minMarkerDistanceRate)) continue;
       const Quad &a = decoded[i], &b = decoded[k];
-      if (a.level < b.level || (a.level == b.level && a.area > b.area)) k = i;
+      const bool better = second_chance[i] != second_chance[k]
+                              ? !second_chance[i]
+                              : a.level < b.level || (a.level == b.level && a.area > b.area);
+      if (better) k = i;
       duplicate = true;
       break;
     }
@@ -799,9 +876,10 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   cv::parallel_for_(cv::Range(0, static_cast<int>(kept.size())), [&](const cv::Range& range) {
     for (int i = range.start; i < range.end; ++i) {
       Quad q = decoded[kept[i]];
+      const bool second = second_chance[kept[i]];
       // cornerSubPix lands within a few hundredths of a pixel from any start a pixel or two away;
       // the edge fit keeps its start where it cannot measure an edge, so it gets cv::aruco's.
-      const bool exact = !subpix && CornersAsOpenCv(pyramid, config, q);
+      const bool exact = !subpix && (second || CornersAsOpenCv(pyramid, config, q));
       found[i].id = ids[kept[i]];
       found[i].corners = q.corners;
       if (exact) continue;

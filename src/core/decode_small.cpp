@@ -1,0 +1,344 @@
+// Second-chance decoding of tiny candidates, see decode_small.hpp. False positives are what a
+// looser decoder risks, so everything here is stricter than cv::aruco except the sampling: exact
+// code match, a whole border, a clear black/white gap and at least a pixel per cell.
+#include "decode_small.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag::internal {
+
+namespace {
+
+// Sub-pixel samples per pixel and axis when measuring how much of each pixel each cell covers.
+constexpr int kCoverageSamples = 4;
+// Pixels whose centre lies within this many cells outside the black square take part in the cell
+// estimate (they see its edge cells); the quiet zone they also cover is one more unknown.
+constexpr double kCoverageMarginCells = 0.5;
+// Ridge weight of the least-squares cell estimate, relative to the mean pixel weight per unknown:
+// keeps a cell that no pixel sees mostly (under a pixel wide) near the overall mean.
+constexpr double kRidge = 0.02;
+// Mean white cell minus mean black cell, grey levels: below it the "bits" are texture or noise.
+constexpr double kMinContrast = 20.0;
+// The darkest white cell must be brighter than the brightest black cell by this fraction of the
+// contrast: a marker's cells fall into two clear groups, a random patch's values are spread out.
+constexpr double kMinGap = 0.2;
+// Grid steps per cell when locating the black square inside a quiet-zone outline.
+constexpr int kProfileStepsPerCell = 8;
+// How far (cells) the contour of a black square is pushed outwards before its edges are located
+// again from the grey levels: past a one-pixel contour error, within the one-cell quiet zone.
+constexpr double kExpandCells = 0.6;
+
+// Bilinear grey value at (x, y); false outside the frame.
+bool Bilinear(const cv::Mat& grey, double x, double y, double& value) {
+  if (!(x >= 0.0 && y >= 0.0 && x <= grey.cols - 1.0 && y <= grey.rows - 1.0)) return false;
+  const int ix = std::min(static_cast<int>(x), grey.cols - 2), iy = std::min(static_cast<int>(y), grey.rows - 2);
+  if (ix < 0 || iy < 0) return false;  // a one-pixel-wide frame
+  const double a = x - ix, b = y - iy;
+  const uchar* r0 = grey.ptr<uchar>(iy) + ix;
+  const uchar* r1 = grey.ptr<uchar>(iy + 1) + ix;
+  value = (1.0 - b) * ((1.0 - a) * r0[0] + a * r0[1]) + b * ((1.0 - a) * r1[0] + a * r1[1]);
+  return true;
+}
+
+// Grey value at unit-square coordinates (u, v) of the quad whose homography is h.
+bool SampleUnit(const cv::Mat& grey, const cv::Matx33d& h, double u, double v, double& value) {
+  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+  if (std::fabs(w) < 1e-12) return false;
+  return Bilinear(grey, (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w, value);
+}
+
+cv::Point2f MapUnit(const cv::Matx33d& h, double u, double v) {
+  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+  return cv::Point2f(static_cast<float>((h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w),
+                     static_cast<float>((h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w));
+}
+
+// Homography of the unit square onto the quad: (0,0)->q0, (1,0)->q1, (1,1)->q2, (0,1)->q3.
+cv::Matx33d UnitToQuad(const std::array<cv::Point2f, 4>& q) {
+  const cv::Point2f unit[4] = {{0.f, 0.f}, {1.f, 0.f}, {1.f, 1.f}, {0.f, 1.f}};
+  return cv::Matx33d(cv::getPerspectiveTransform(unit, q.data()));
+}
+
+// The quad whose unit square is [u0, u1] x [v0, v1] of h's.
+cv::Matx33d SubSquare(const cv::Matx33d& h, double u0, double v0, double u1, double v1) {
+  return h * cv::Matx33d(u1 - u0, 0.0, u0, 0.0, v1 - v0, v0, 0.0, 0.0, 1.0);
+}
+
+std::array<cv::Point2f, 4> Corners(const cv::Matx33d& h) {
+  return {MapUnit(h, 0, 0), MapUnit(h, 1, 0), MapUnit(h, 1, 1), MapUnit(h, 0, 1)};
+}
+
+float ShortestSide(const std::array<cv::Point2f, 4>& q) {
+  float s = 1e30f;
+  for (int i = 0; i < 4; ++i) s = std::min(s, static_cast<float>(cv::norm(q[i] - q[(i + 1) % 4])));
+  return s;
+}
+
+// The grey level of each of the n x n cells of the black square h maps the unit square onto, by
+// least squares over the pixels around it: each pixel is modelled as the area-weighted mean of the
+// cells (and the quiet zone) it covers. At 1.25 px per cell no pixel sees a cell alone, and a
+// sample at the cell's centre reads half its neighbours; the pixel-area model undoes that mixing.
+bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector<double>& cells) {
+  const int unknowns = n * n + 1;  // the cells, then the quiet zone
+  const cv::Matx33d to_unit = h.inv();
+  const double margin = kCoverageMarginCells / n;
+  const std::array<cv::Point2f, 4> outline = Corners(SubSquare(h, -margin, -margin, 1.0 + margin, 1.0 + margin));
+  const cv::Rect box = cv::boundingRect(std::vector<cv::Point2f>(outline.begin(), outline.end())) &
+                       cv::Rect(0, 0, grey.cols, grey.rows);
+  if (box.width < 2 || box.height < 2) return false;
+  cv::Mat normal = cv::Mat::zeros(unknowns, unknowns, CV_64F), rhs = cv::Mat::zeros(unknowns, 1, CV_64F);
+  std::vector<double> weight(unknowns);
+  std::vector<int> touched;
+  int rows = 0;
+  double sum = 0.0;
+  for (int y = box.y; y < box.y + box.height; ++y) {
+    for (int x = box.x; x < box.x + box.width; ++x) {
+      const cv::Vec3d c = to_unit * cv::Vec3d(x, y, 1.0);
+      const double cu = c[0] / c[2], cv_ = c[1] / c[2];
+      if (cu < -margin || cv_ < -margin || cu > 1.0 + margin || cv_ > 1.0 + margin) continue;
+      touched.clear();
+      for (int j = 0; j < kCoverageSamples; ++j) {
+        for (int i = 0; i < kCoverageSamples; ++i) {
+          const double sx = x - 0.5 + (i + 0.5) / kCoverageSamples, sy = y - 0.5 + (j + 0.5) / kCoverageSamples;
+          const cv::Vec3d s = to_unit * cv::Vec3d(sx, sy, 1.0);
+          const double u = s[0] / s[2], v = s[1] / s[2];
+          const int cx = static_cast<int>(std::floor(u * n)), cy = static_cast<int>(std::floor(v * n));
+          const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
+          if (weight[k] == 0.0) touched.push_back(k);
+          weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
+        }
+      }
+      const double value = grey.at<uchar>(y, x);
+      for (const int a : touched) {
+        rhs.at<double>(a) += weight[a] * value;
+        for (const int b : touched) normal.at<double>(a, b) += weight[a] * weight[b];
+      }
+      for (const int a : touched) weight[a] = 0.0;
+      sum += value;
+      ++rows;
+    }
+  }
+  if (rows < unknowns) return false;
+  const double mean = sum / rows;
+  const double ridge = kRidge * rows / unknowns;
+  for (int a = 0; a < unknowns; ++a) {
+    normal.at<double>(a, a) += ridge;
+    rhs.at<double>(a) += ridge * mean;
+  }
+  cv::Mat solution;
+  if (!cv::solve(normal, rhs, solution, cv::DECOMP_CHOLESKY)) return false;
+  cells.assign(solution.begin<double>(), solution.begin<double>() + n * n);
+  return true;
+}
+
+// Reads the cells of the marker whose black square is h's unit square and looks them up. On
+// success `rotation` is Dictionary::identify's, which is how cv::aruco rotates its corners.
+bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dictionary& dictionary, int border_bits,
+               bool detect_inverted, int& id, int& rotation) {
+  const int bits = dictionary.markerSize;
+  const int n = bits + 2 * border_bits;
+  // A cell under a pixel wide has no centre of its own to sample.
+  if (ShortestSide(Corners(h)) < n) return false;
+  std::vector<double> cells;
+  if (!EstimateCells(grey, h, n, cells)) return false;
+  // Otsu over the cells: the split of the sorted values with the largest between-class variance.
+  std::vector<double> sorted(cells);
+  std::sort(sorted.begin(), sorted.end());
+  const int count = static_cast<int>(sorted.size());
+  const double total = std::accumulate(sorted.begin(), sorted.end(), 0.0);
+  double below = 0.0, best_variance = -1.0, dark = 0.0, bright = 0.0;
+  int split = 0;
+  for (int k = 1; k < count; ++k) {
+    below += sorted[k - 1];
+    const double m0 = below / k, m1 = (total - below) / (count - k);
+    const double variance = double(k) * (count - k) * (m1 - m0) * (m1 - m0);
+    if (variance > best_variance) {
+      best_variance = variance;
+      split = k;
+      dark = m0;
+      bright = m1;
+    }
+  }
+  const double contrast = bright - dark;
+  if (contrast < kMinContrast || sorted[split] - sorted[split - 1] < kMinGap * contrast) return false;
+  const double threshold = 0.5 * (sorted[split - 1] + sorted[split]);
+
+  int white_border = 0, border = 0;
+  for (int y = 0; y < n; ++y) {
+    for (int x = 0; x < n; ++x) {
+      const bool inner = x >= border_bits && y >= border_bits && x < n - border_bits && y < n - border_bits;
+      if (inner) continue;
+      ++border;
+      white_border += cells[static_cast<size_t>(y) * n + x] > threshold;
+    }
+  }
+  const bool inverted = white_border == border;
+  if (white_border != 0 && !(inverted && detect_inverted)) return false;
+  cv::Mat code(bits, bits, CV_8UC1);
+  for (int y = 0; y < bits; ++y) {
+    for (int x = 0; x < bits; ++x) {
+      const bool white = cells[static_cast<size_t>(y + border_bits) * n + x + border_bits] > threshold;
+      code.at<uchar>(y, x) = white != inverted ? 1 : 0;
+    }
+  }
+  return dictionary.identify(code, id, rotation, 0.0);
+}
+
+// Where, along a profile of grey levels running from outside a quad inwards, the bright margin
+// turns into the dark square: the sub-sample position of the first crossing, after the margin's
+// brightest point, of the level halfway between it and the square. The profile may start dark
+// (the contour runs along the dark pixels just outside the margin). -1 without such a crossing.
+double EdgeFromOutside(const std::vector<double>& profile) {
+  const int g = static_cast<int>(profile.size());
+  const auto peak = std::max_element(profile.begin(), profile.begin() + g / 4);
+  const double bright = *peak;
+  const double dark = *std::min_element(peak, profile.begin() + g / 2);
+  if (bright - dark < kMinContrast) return -1.0;
+  const double mid = 0.5 * (bright + dark);
+  for (int k = static_cast<int>(peak - profile.begin()); k + 1 < g / 2; ++k) {
+    if (profile[k] >= mid && profile[k + 1] < mid) return k + (profile[k] - mid) / (profile[k] - profile[k + 1]);
+  }
+  return -1.0;
+}
+
+// The black square inside h's unit square, when that is the outline of a marker's quiet zone:
+// each edge located from the mean grey profile across the middle of the quad. Inverted markers
+// (white square, dark margin) with `inverted`.
+bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inverted, cv::Matx33d& inner) {
+  const int g = kProfileStepsPerCell * cells;
+  const int band_from = g * 3 / 10, band_to = g * 7 / 10;
+  std::vector<double> across(g, 0.0), down(g, 0.0);  // profiles along u and along v
+  for (int k = 0; k < g; ++k) {
+    const double t = (k + 0.5) / g;
+    for (int b = band_from; b < band_to; ++b) {
+      const double s = (b + 0.5) / g;
+      double a = 0.0, d = 0.0;
+      if (!SampleUnit(grey, h, t, s, a) || !SampleUnit(grey, h, s, t, d)) return false;
+      across[k] += inverted ? -a : a;
+      down[k] += inverted ? -d : d;
+    }
+    across[k] /= band_to - band_from;
+    down[k] /= band_to - band_from;
+  }
+  // Unit-square coordinate of a crossing found `steps` samples in from the start of a profile.
+  const auto unit = [g](double steps) { return (steps + 0.5) / g; };
+  const std::vector<double> across_back(across.rbegin(), across.rend()), down_back(down.rbegin(), down.rend());
+  const double left = EdgeFromOutside(across), right = EdgeFromOutside(across_back);
+  const double top = EdgeFromOutside(down), bottom = EdgeFromOutside(down_back);
+  if (left < 0.0 || right < 0.0 || top < 0.0 || bottom < 0.0) return false;
+  const double u0 = unit(left), u1 = 1.0 - unit(right), v0 = unit(top), v1 = 1.0 - unit(bottom);
+  // A marker fills most of its quiet-zone outline; the margins are a cell or two.
+  if (u1 - u0 < 0.4 || v1 - v0 < 0.4) return false;
+  inner = SubSquare(h, u0, v0, u1, v1);
+  return true;
+}
+
+}  // namespace
+
+float MeanSide(const std::array<cv::Point2f, 4>& quad) {
+  float s = 0.0f;
+  for (int i = 0; i < 4; ++i) s += static_cast<float>(cv::norm(quad[i] - quad[(i + 1) % 4]));
+  return 0.25f * s;
+}
+
+bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
+                 const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker) {
+  if (grey.type() != CV_8UC1 || grey.cols < 2 || grey.rows < 2) return false;
+  if (!(MeanSide(candidate) < kSmallCandidateMaxSide)) return false;
+  std::array<cv::Point2f, 4> quad = candidate;
+  // Clockwise in the image (y down), as cv::aruco orders candidates: the cells are then read in the
+  // marker's own orientation, not mirrored.
+  const cv::Point2f d1 = quad[1] - quad[0], d2 = quad[2] - quad[0];
+  const double turn = double(d1.x) * d2.y - double(d1.y) * d2.x;
+  if (!(std::fabs(turn) > 0.0)) return false;
+  if (turn < 0.0) std::swap(quad[1], quad[3]);
+  const cv::Matx33d h = UnitToQuad(quad);
+  const int cells = dictionary.markerSize + 2 * border_bits;
+
+  // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
+  // pixel off, pushed out into its quiet zone and located again from the grey levels.
+  std::vector<cv::Matx33d> hypotheses = {h};
+  cv::Matx33d inner;
+  const double e = kExpandCells / cells;
+  const cv::Matx33d expanded = SubSquare(h, -e, -e, 1.0 + e, 1.0 + e);
+  for (const bool inverted : {false, true}) {
+    if (inverted && !detect_inverted) break;
+    if (InnerSquare(grey, h, cells, inverted, inner)) hypotheses.push_back(inner);
+    if (InnerSquare(grey, expanded, cells, inverted, inner)) hypotheses.push_back(inner);
+  }
+  for (const cv::Matx33d& square : hypotheses) {
+    int id = -1, rotation = 0;
+    if (!ReadCells(grey, square, dictionary, border_bits, detect_inverted, id, rotation)) continue;
+    marker.id = id;
+    marker.corners = Corners(square);
+    std::rotate(marker.corners.begin(), marker.corners.begin() + 4 - rotation, marker.corners.end());
+    return true;
+  }
+  return false;
+}
+
+namespace {
+
+// cv::aruco's "too close" test (_filterTooCloseCandidates): corners, in some cyclic order, closer
+// RMS than `rate` of the smaller perimeter.
+bool TooClose(const std::array<cv::Point2f, 4>& a, const std::array<cv::Point2f, 4>& b, double rate) {
+  const double limit = rate * 4.0 * std::min(MeanSide(a), MeanSide(b));
+  for (int shift = 0; shift < 4; ++shift) {
+    double sum = 0.0;
+    for (int c = 0; c < 4; ++c) {
+      const cv::Point2f d = a[(c + shift) % 4] - b[c];
+      sum += double(d.x) * d.x + double(d.y) * d.y;
+    }
+    if (sum / 4.0 < limit * limit) return true;
+  }
+  return false;
+}
+
+std::array<cv::Point2f, 4> ToArray(const std::vector<cv::Point2f>& v) {
+  std::array<cv::Point2f, 4> a{};
+  std::copy_n(v.begin(), std::min<size_t>(4, v.size()), a.begin());
+  return a;
+}
+
+}  // namespace
+
+std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<std::vector<cv::Point2f>>& rejected,
+                                        const std::vector<std::vector<cv::Point2f>>& found_corners,
+                                        const std::vector<int>& found_ids, const cv::aruco::Dictionary& dictionary,
+                                        const cv::aruco::DetectorParameters& parameters) {
+  std::vector<SmallMarker> markers;
+  for (const auto& candidate : rejected) {
+    if (candidate.size() != 4) continue;
+    SmallMarker marker;
+    if (!DecodeSmall(grey, ToArray(candidate), dictionary, parameters.markerBorderBits,
+                     parameters.detectInvertedMarker, marker)) {
+      continue;
+    }
+    bool duplicate = false;
+    for (size_t i = 0; i < found_ids.size() && !duplicate; ++i) {
+      duplicate = found_ids[i] == marker.id &&
+                  TooClose(ToArray(found_corners[i]), marker.corners, parameters.minMarkerDistanceRate);
+    }
+    for (const auto& m : markers) {
+      duplicate = duplicate || (m.id == marker.id && TooClose(m.corners, marker.corners, parameters.minMarkerDistanceRate));
+    }
+    if (duplicate) continue;
+    if (parameters.cornerRefinementMethod == cv::aruco::CORNER_REFINE_SUBPIX) {
+      std::vector<cv::Point2f> corners(marker.corners.begin(), marker.corners.end());
+      cv::cornerSubPix(grey, corners, cv::Size(parameters.cornerRefinementWinSize, parameters.cornerRefinementWinSize),
+                       cv::Size(-1, -1),
+                       cv::TermCriteria(cv::TermCriteria::MAX_ITER | cv::TermCriteria::EPS,
+                                        parameters.cornerRefinementMaxIterations,
+                                        parameters.cornerRefinementMinAccuracy));
+      std::copy(corners.begin(), corners.end(), marker.corners.begin());
+    }
+    markers.push_back(marker);
+  }
+  return markers;
+}
+
+}  // namespace arucotag::internal

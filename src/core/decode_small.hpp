@@ -1,0 +1,50 @@
+// Second-chance decoder for tiny marker candidates (internal to arucotag_core). cv::aruco decodes a
+// candidate by warping it to 4 px per cell and voting over each cell's inner pixels with nearest-
+// neighbour sampling: on a marker 12-30 px wide, and on one tilted so far that its cells are barely
+// a pixel in one direction, a one-pixel error of the contour's corners or the blur of a 1.25 px cell
+// flips bits, and the candidate is rejected. This decoder samples each cell at its centre instead.
+#pragma once
+
+#include <array>
+#include <vector>
+
+#include <opencv2/aruco.hpp>
+#include <opencv2/core.hpp>
+
+namespace arucotag::internal {
+
+/// Candidates with a mean side (px) below this get the second chance. Above it cv::aruco's own
+/// decoding has 5 px per cell or more and a rejection is a real one.
+constexpr float kSmallCandidateMaxSide = 30.0f;
+
+/// Mean side length (px) of a quad.
+float MeanSide(const std::array<cv::Point2f, 4>& quad);
+
+/// A marker the small decoder identified.
+struct SmallMarker {
+  int id = -1;
+  std::array<cv::Point2f, 4> corners{};  ///< cv::aruco order: corner 0 is the marker's top-left
+};
+
+/// Decodes a small candidate quad (any corner order) of an 8-bit grey frame. Tries the quad as the
+/// marker's black square, then as the outline of its quiet zone (the white margin, which is the only
+/// contour cv::aruco finds around a steeply tilted marker) with the black square located inside it
+/// from the grey levels. Cells are the mean of bilinear samples around each cell's centre through
+/// the quad's homography, split into black and white by Otsu's threshold over the cells; a marker
+/// needs a clear gap between the two, a whole black border (white with `detect_inverted`, bits then
+/// inverted) and an exact dictionary match in one of the four rotations, no error correction.
+/// Returns false for quads at or above kSmallCandidateMaxSide, partly outside the frame, or not a
+/// marker.
+bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
+                 const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker);
+
+/// The second chance of cv::aruco::detectMarkers' rejected candidates: every small one DecodeSmall
+/// identifies, except where a marker of the same id was already found (`found`, or an earlier
+/// rejected candidate) within cv::aruco's min_marker_distance_rate. Corners are refined with
+/// cv::cornerSubPix when the parameters ask for CORNER_REFINE_SUBPIX, as cv::aruco refines its own.
+std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<std::vector<cv::Point2f>>& rejected,
+                                        const std::vector<std::vector<cv::Point2f>>& found_corners,
+                                        const std::vector<int>& found_ids, const cv::aruco::Dictionary& dictionary,
+                                        const cv::aruco::DetectorParameters& parameters);
+
+}  // namespace arucotag::internal
