@@ -8,6 +8,7 @@ catkin_add_gtest(test_core
   test/core/test_preprocess.cpp
   test/core/test_preprocess_recall.cpp
   test/core/test_real_photos.cpp
+  test/core/test_small_markers.cpp
   test/core/test_refine_pattern.cpp
   test/core/test_no_ros.cpp
   test/core/test_synthetic.cpp)
