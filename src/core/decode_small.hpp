@@ -2,7 +2,8 @@
 // candidate by warping it to 4 px per cell and voting over each cell's inner pixels with nearest-
 // neighbour sampling: on a marker 12-30 px wide, and on one tilted so far that its cells are barely
 // a pixel in one direction, a one-pixel error of the contour's corners or the blur of a 1.25 px cell
-// flips bits, and the candidate is rejected. This decoder samples each cell at its centre instead.
+// flips bits, and the candidate is rejected. This decoder estimates each cell's grey level from all
+// the pixels it touches instead.
 #pragma once
 
 #include <array>
@@ -29,8 +30,9 @@ struct SmallMarker {
 /// Decodes a small candidate quad (any corner order) of an 8-bit grey frame. Tries the quad as the
 /// marker's black square, then as the outline of its quiet zone (the white margin, which is the only
 /// contour cv::aruco finds around a steeply tilted marker) with the black square located inside it
-/// from the grey levels. Cells are the mean of bilinear samples around each cell's centre through
-/// the quad's homography, split into black and white by Otsu's threshold over the cells; a marker
+/// from the grey levels. Cell grey levels are a least-squares fit of the pixels around the marker,
+/// each pixel the area-weighted mean of the cells it covers through the quad's homography; they are
+/// split into black and white by Otsu's threshold over the cells; a marker
 /// needs a clear gap between the two, a whole black border (white with `detect_inverted`, bits then
 /// inverted) and an exact dictionary match in one of the four rotations, no error correction.
 /// Returns false for quads at or above kSmallCandidateMaxSide, partly outside the frame, or not a
