@@ -131,8 +131,11 @@ struct Sample {
   double grey;
 };
 
-// Normalised sampled Gaussian of the given variance, taps -radius..radius (radius 3.5 sigma, at
-// most kBlurRadius: the tails left out weigh under 0.3 %).
+// Blur kernel acting on pixel-area coverages: the Gaussian of the given variance applied to the
+// piecewise-linear interpolation of the coverage samples, i.e. taps K(k) = E[tri(k - s)] with s
+// Gaussian and tri the unit hat. Unlike the sampled Gaussian it is exact at variance 0 ([0 1 0]) and
+// stays right for sub-pixel blur, where the sampled
+// Gaussian's shape error grows. Radius 3.5 sigma + 1, at most kBlurRadius.
 struct Kernel {
   int radius = 0;
   std::array<double, 2 * kBlurRadius + 1> taps{};
@@ -141,11 +144,19 @@ struct Kernel {
 
 Kernel BlurKernel(double variance) {
   Kernel kernel;
-  kernel.radius = std::min(kBlurRadius, static_cast<int>(std::ceil(3.5 * std::sqrt(variance))));
+  const double sigma = std::sqrt(std::max(variance, 0.0));
+  kernel.radius = std::min(kBlurRadius, static_cast<int>(std::ceil(3.5 * sigma)) + 1);
+  // ramp(a) = E[(a - s)+] for s ~ N(0, sigma^2); tri(t) = ramp(t+1) - 2 ramp(t) + ramp(t-1).
+  const auto ramp = [sigma](double a) {
+    if (sigma < 1e-9) return std::max(a, 0.0);
+    const double z = a / sigma;
+    return a * 0.5 * std::erfc(-z / std::sqrt(2.0)) + sigma * std::exp(-0.5 * z * z) / std::sqrt(2.0 * M_PI);
+  };
   double sum = 0.0;
   for (int k = -kernel.radius; k <= kernel.radius; ++k) {
-    kernel.taps[k + kBlurRadius] = variance > 0 ? std::exp(-0.5 * k * k / variance) : 1.0;
-    sum += kernel.taps[k + kBlurRadius];
+    const double w = ramp(k + 1.0) - 2.0 * ramp(k) + ramp(k - 1.0);
+    kernel.taps[k + kBlurRadius] = w;
+    sum += w;
   }
   for (double& w : kernel.taps) w /= sum;
   return kernel;
@@ -160,6 +171,7 @@ class PatternFit {
   PatternFit(const cv::Mat& grey, const cv::Mat& black, int cells, const std::array<Vec2, 4>& corners)
       : grey_(grey), black_(black), cells_(cells) {
     for (const Vec2& c : corners) origin_ += c * 0.25;
+    samples_.clear();
     SelectPixels(corners);
   }
 
@@ -297,7 +309,7 @@ class PatternFit {
     for (int k = 0; k < 4; ++k) shoelace += Cross(outline[k], outline[(k + 1) % 4]);
     area_ = 0.5 * std::abs(shoelace);
     for (int y = box.y; y < box.y + box.height; ++y) {
-      const uchar* row = grey_.ptr<uchar>(y);
+      const float* row = grey_.ptr<float>(y);
       for (int x = box.x; x < box.x + box.width; ++x) {
         const Vec2 g = Apply(to_grid, x - origin_.x, y - origin_.y);
         if (g.x < lo || g.x > hi || g.y < lo || g.y > hi) continue;
@@ -381,7 +393,7 @@ class PatternFit {
     }
   }
 
-  const cv::Mat& grey_;
+  const cv::Mat& grey_;  // CV_32F
   const cv::Mat& black_;
   const int cells_;
   Vec2 origin_;
@@ -389,10 +401,23 @@ class PatternFit {
   bool covered_ = false;
   std::array<Vec2, 4> covered_corners_;
   cv::Rect roi_;  // coverage area, image coordinates (may reach past the image)
-  std::vector<Sample> samples_;
-  std::vector<Vec2> vertices_, plus_, minus_;
-  std::vector<double> vertex_jac_;
-  std::vector<float> cover_, rows_;
+  // Per-thread scratch reused across fits: the coverage planes of a 56 px marker are a few hundred
+  // kB, and fresh allocations of that size cost page faults on every fit.
+  struct Scratch {
+    std::vector<Sample> samples;
+    std::vector<Vec2> vertices, plus, minus;
+    std::vector<double> vertex_jac;
+    std::vector<float> cover, rows;
+  };
+  static Scratch& ThreadScratch() {
+    thread_local Scratch scratch;
+    return scratch;
+  }
+  Scratch& scratch_ = ThreadScratch();
+  std::vector<Sample>& samples_ = scratch_.samples;
+  std::vector<Vec2>&vertices_ = scratch_.vertices, &plus_ = scratch_.plus, &minus_ = scratch_.minus;
+  std::vector<double>& vertex_jac_ = scratch_.vertex_jac;
+  std::vector<float>&cover_ = scratch_.cover, &rows_ = scratch_.rows;
 };
 
 // Cost of the model at `params` and, with jtj/jtr, its Huber-weighted normal equations; with
@@ -451,13 +476,11 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
   return cost;
 }
 
-}  // namespace
-
-bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
-  CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
+// The fit itself, on a CV_32F image: refines `corners` in place (its pixel coordinates); false when
+// the result is not to be trusted.
+bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners) {
   const int cells = black.rows;
-  std::array<Vec2, 4> start;
-  for (int i = 0; i < 4; ++i) start[i] = corners[i];
+  const std::array<Vec2, 4> start = corners;
   PatternFit fit(grey, black, cells, start);
   // Cut by the image border (the pattern would be fitted to part of itself), or too few pixels to
   // say anything.
@@ -501,6 +524,11 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
     for (int p = 0; p < kParams; ++p) damped(p, p) += lambda * std::max(jtj(p, p), 1e-9);
     cv::Matx<double, kParams, 1> step;
     if (!cv::solve(damped, jtr, step, cv::DECOMP_CHOLESKY)) return false;
+    double largest = 0.0;
+    for (int p = 0; p < 8; ++p) largest = std::max(largest, std::abs(step(p)));
+    // Converged: the corners would move by less than kConverged. (Testing this before the trial
+    // also ends the fit where a tiny step no longer lowers the cost in float arithmetic.)
+    if (largest < kConverged) break;
     double trial[kParams];
     for (int p = 0; p < kParams; ++p) trial[p] = params[p] + step(p);
     trial[kBlur] = std::clamp(trial[kBlur], 0.0, kMaxBlurVariance);
@@ -513,9 +541,6 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
       jtj = trial_jtj;
       jtr = trial_jtr;
       lambda = std::max(lambda * 0.1, 1e-7);
-      double largest = 0.0;
-      for (int p = 0; p < 8; ++p) largest = std::max(largest, std::abs(step(p)));
-      if (largest < kConverged) break;
     } else {
       lambda *= 10.0;
       if (lambda > 1e6) break;
@@ -524,12 +549,43 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
   // A fit that wandered off (further than the start can be wrong by) or leaves many pixels unexplained
   // is not trusted.
   if (!(outliers < kMaxOutliers) || std::abs(params[9]) < 0.5 * contrast) return false;
+  for (int i = 0; i < 4; ++i) corners[i] = {params[2 * i], params[2 * i + 1]};
+  return true;
+}
+
+}  // namespace
+
+bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
+  CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
+  const int cells = black.rows;
+  double side = 0.0, x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
   for (int i = 0; i < 4; ++i) {
-    if (std::hypot(params[2 * i] - start[i].x, params[2 * i + 1] - start[i].y) > kMaxMove) return false;
+    side += 0.25 * cv::norm(corners[(i + 1) % 4] - corners[i]);
+    x0 = std::min<double>(x0, corners[i].x);
+    x1 = std::max<double>(x1, corners[i].x);
+    y0 = std::min<double>(y0, corners[i].y);
+    y1 = std::max<double>(y1, corners[i].y);
   }
+  if (!(side > 0.0) || !std::isfinite(x0 + x1 + y0 + y1)) return false;
+  // The marker, its quiet-zone strip and room for the blur kernel, as float. (A fit on a 2x2-averaged
+  // copy was tried for speed: 4x cheaper, but 0.06 px off on blurred markers, so not used.)
+  const double margin = side / cells + kBlurRadius + 2;
+  cv::Rect box(cv::Point(static_cast<int>(std::floor(x0 - margin)), static_cast<int>(std::floor(y0 - margin))),
+               cv::Point(static_cast<int>(std::ceil(x1 + margin)) + 1, static_cast<int>(std::ceil(y1 + margin)) + 1));
+  box &= cv::Rect(0, 0, grey.cols, grey.rows);
+  if (box.width < 4 || box.height < 4) return false;
+  cv::Mat patch;
+  grey(box).convertTo(patch, CV_32F);
+  std::array<Vec2, 4> local;
+  for (int i = 0; i < 4; ++i) local[i] = {corners[i].x - box.x, corners[i].y - box.y};
+  if (!FitPattern(patch, black, local)) return false;
+  std::array<cv::Point2f, 4> refined;
   for (int i = 0; i < 4; ++i) {
-    corners[i] = cv::Point2f(static_cast<float>(params[2 * i]), static_cast<float>(params[2 * i + 1]));
+    const Vec2 p(local[i].x + box.x, local[i].y + box.y);
+    if (cv::norm(p - Vec2(corners[i])) > kMaxMove) return false;
+    refined[i] = cv::Point2f(static_cast<float>(p.x), static_cast<float>(p.y));
   }
+  corners = refined;
   return true;
 }
 
