@@ -255,8 +255,12 @@ class PatternFit {
     rows_.assign(static_cast<size_t>(roi_.area()) * kChannels, 0.0f);
     for (int y = 0; y < roi_.height; ++y) {
       for (int x = 0; x < roi_.width; ++x) {
-        const float* in = &cover_[(static_cast<size_t>(y) * roi_.width + x) * kChannels];
-        if (std::all_of(in, in + 9, [](float v) { return v == 0.0f; })) continue;
+        const float* source = &cover_[(static_cast<size_t>(y) * roi_.width + x) * kChannels];
+        if (std::all_of(source, source + 9, [](float v) { return v == 0.0f; })) continue;
+        // A local copy: the compiler cannot otherwise rule out that `out` overlaps it, and does not
+        // vectorise.
+        alignas(16) float in[kChannels];
+        std::copy(source, source + kChannels, in);
         // Scatter the pixel to its row neighbours.
         for (int k = std::max(-r, -x); k <= std::min(r, roi_.width - 1 - x); ++k) {
           const float w = taps[k + kBlurRadius];
