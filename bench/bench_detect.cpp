@@ -3,6 +3,8 @@
 //   (b) arucotag::Detect with the default DetectorConfig,
 //   (c) the whole per-frame pipeline: PreprocessFrame (from BGR) + Detect + EstimatePoseFromPNP per tag,
 //   (b2) Detect with corner_refinement subpix instead of the default edge fit (the detector alone),
+//   (b3) Detect with the edge fit but no whole-pattern fit (pattern_fit_max_side 0): what the
+//        pattern fit of small markers costs,
 // and writes JSON for bench/report.py (which adds the nodelet's row from bench_nodelet).
 //
 //   bench_detect --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100]
@@ -95,7 +97,7 @@ struct SetResult {
   std::string name, size;
   int frames = 0;
   bool sequence = false;
-  std::map<std::string, Stats> methods;  // "a", "b", "b2", "c"
+  std::map<std::string, Stats> methods;  // "a", "b", "b2", "b3", "c"
   double max_diff_to_full_px = 0.0;     // (b) against the full search (fast_path off), same ids
   int ids_differing = 0;                // markers one of them reports and the other not
   unsigned long long full_searches = 0, tracked_frames = 0;
@@ -105,6 +107,8 @@ struct SetResult {
   std::vector<double> pose_us;  // per tag
   double edge_us_total = 0.0;  // RefineCornersOnEdges alone, on (b)'s tags
   long edges = 0;
+  double pattern_us_total = 0.0;  // RefineCornersOnPattern alone, on (b)'s tags it applies to
+  long patterns = 0;
 };
 
 // The full search (cv::aruco with our configuration) next to (b): ids and corners must agree.
@@ -143,6 +147,9 @@ SetResult RunSet(const FrameSet& set, int reps) {
   DetectorConfig subpix_config = config;
   subpix_config.corner_refinement = CornerRefinement::kSubpix;
   const Detector detect_b2(subpix_config);
+  DetectorConfig edge_only_config = config;
+  edge_only_config.pattern_fit_max_side = 0;
+  const Detector detect_b3(edge_only_config);
   DetectorConfig full_config = config;
   full_config.fast_path = false;
   const Detector full(full_config);
@@ -152,14 +159,15 @@ SetResult RunSet(const FrameSet& set, int reps) {
     const auto reset = [&] {
       detect_b.ResetTracking();
       detect_b2.ResetTracking();
+      detect_b3.ResetTracking();
       detect_c.ResetTracking();
     };
     reset();
     for (size_t k = 0; k < set.frames.size(); ++k) {
       const Frame& frame = set.frames[k];
       if (!set.sequence) reset();
-      for (int m = 0; m < 4; ++m) {
-        const int method = static_cast<int>((m + k + rep) % 4);
+      for (int m = 0; m < 5; ++m) {
+        const int method = static_cast<int>((m + k + rep) % 5);
         Detections d;
         double pose_us = 0.0;
         long poses = 0;
@@ -172,6 +180,8 @@ SetResult RunSet(const FrameSet& set, int reps) {
           d = FromTags(Detect(frame.grey, detect_b));
         } else if (method == 3) {
           d = FromTags(Detect(frame.grey, detect_b2));
+        } else if (method == 4) {
+          d = FromTags(Detect(frame.grey, detect_b3));
         } else {
           cv::Mat grey;
           PreprocessFrame(frame.bgr, grey);
@@ -187,7 +197,7 @@ SetResult RunSet(const FrameSet& set, int reps) {
           d = FromTags(tags);
         }
         const double wall = WallMs() - w0, cpu = CpuMs() - c0;
-        static const char* const kKeys[] = {"a", "b", "c", "b2"};
+        static const char* const kKeys[] = {"a", "b", "c", "b2", "b3"};
         Stats& s = r.methods[kKeys[method]];
         s.wall.push_back(wall);
         s.cpu.push_back(cpu);
@@ -202,11 +212,20 @@ SetResult RunSet(const FrameSet& set, int reps) {
           if (!set.sequence) CompareToFull(frame, d, full, r);
           if (config.corner_refinement == CornerRefinement::kEdge) {
             const int cells = full.dictionary()->markerSize + 2 * config.marker_border_bits;
-            for (auto corners : d.corners) {
+            for (size_t t = 0; t < d.corners.size(); ++t) {
+              auto corners = d.corners[t];
               const double e0 = WallMs();
               RefineCornersOnEdges(frame.grey, corners, cells);
               r.edge_us_total += (WallMs() - e0) * 1e3;
               ++r.edges;
+              double perimeter = 0.0;
+              for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[i] - corners[(i + 1) % 4]);
+              if (perimeter >= 4.0 * config.pattern_fit_max_side) continue;  // (the per-frame cap aside)
+              const cv::Mat black = MarkerCells(*full.dictionary(), d.ids[t], config.marker_border_bits);
+              const double p0 = WallMs();
+              RefineCornersOnPattern(frame.grey, black, corners);
+              r.pattern_us_total += (WallMs() - p0) * 1e3;
+              ++r.patterns;
             }
           }
           for (const Truth& t : frame.truth) {
@@ -259,6 +278,7 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
       {"a", "(a) cv::aruco::detectMarkers, OpenCV defaults"},
       {"b", "(b) Detect, default config"},
       {"b2", "(b2) Detect, subpix refinement"},
+      {"b3", "(b3) Detect, edge fit only (no pattern fit)"},
       {"c", "(c) preprocess + Detect + PnP"}};
   for (size_t i = 0; i < results.size(); ++i) {
     const SetResult& r = results[i];
@@ -268,6 +288,8 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
         << ", \"tracked_frames\": " << r.tracked_frames << ", \"worst_new_marker_delay\": " << r.worst_new_marker_delay
         << ", \"pose_us_per_tag\": " << (r.poses ? r.pose_us_total / r.poses : 0.0) << ", \"poses\": " << r.poses
         << ", \"edge_fit_us_per_tag\": " << (r.edges ? r.edge_us_total / r.edges : 0.0) << ", \"edge_fits\": " << r.edges
+        << ", \"pattern_fit_us_per_tag\": " << (r.patterns ? r.pattern_us_total / r.patterns : 0.0)
+        << ", \"pattern_fits\": " << r.patterns
         << ",\n     \"methods\": {";
     int m = 0;
     for (const auto& [key, s] : r.methods) {

@@ -52,7 +52,7 @@ def main():
     misses = []
     for s in results["sets"]:
         a = s["methods"]["a"]
-        for key in ("a", "b", "b2", "c", "d"):
+        for key in ("a", "b", "b2", "b3", "c", "d"):
             m = s["methods"].get(key)
             if m is None:
                 continue
@@ -92,6 +92,11 @@ def main():
         edge_us = sum(s["edge_fit_us_per_tag"] * s["edge_fits"] for s in results["sets"]) / edges
         lines.append(f"- Edge-fit corner refinement (RefineCornersOnEdges, the default; (a) refines nothing): "
                      f"{edge_us:.0f} us per tag on one core, part of (b), (c) and (d).")
+    patterns = sum(s.get("pattern_fits", 0) for s in results["sets"])
+    if patterns:
+        pattern_us = sum(s["pattern_fit_us_per_tag"] * s["pattern_fits"] for s in results["sets"]) / patterns
+        lines.append(f"- Whole-pattern fit (RefineCornersOnPattern, markers under pattern_fit_max_side): {pattern_us:.0f} us "
+                     f"per tag on one core over {patterns} tags, part of (b), (c) and (d); (b3) is (b) without it.")
     for s in results["sets"]:
         if s["sequence"]:
             lines.append(f"- {s['name']}: {s['tracked_frames']} frames searched by tracking, {s['full_searches']} "

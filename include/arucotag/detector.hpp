@@ -79,6 +79,10 @@ struct DetectorConfig {
   /// about 50 px the border alone leaves corners tenths of a pixel off and the pose flips; the fit
   /// brings them to about 0.02 px. 0 turns it off.
   int pattern_fit_max_side = 56;
+  /// At most this many markers per frame get the pattern fit, the smallest first (they need it
+  /// most): bounds the time a crowded frame (a calibration board, a wall of markers) adds. 0 = no
+  /// limit.
+  int pattern_fit_max_markers = 8;
 
   std::vector<int> allowed_ids;  ///< when not empty, only these ids are reported
   std::vector<int> ignored_ids;  ///< never reported (applied after allowed_ids)

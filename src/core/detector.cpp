@@ -68,6 +68,7 @@ void Validate(const DetectorConfig& c) {
           "corner_refinement_min_accuracy", "must be > 0");
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
   Require(c.pattern_fit_max_side >= 0, "pattern_fit_max_side", "must be >= 0 px (0 turns the pattern fit off)");
+  Require(c.pattern_fit_max_markers >= 0, "pattern_fit_max_markers", "must be >= 0 (0 = no limit)");
   Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
   for (const auto& [id, side] : c.side_lengths) {
     Require(Finite(side) && side > 0.0, "side_lengths",
@@ -268,15 +269,24 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     // the pattern fit).
     const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
     cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
-      for (int i = range.start; i < range.end; ++i) {
-        auto& corners = tags[i].corners;
-        RefineCornersOnEdges(grey, corners, cells);
-        double perimeter = 0.0;
-        for (int k = 0; k < 4; ++k) perimeter += cv::norm(corners[k] - corners[(k + 1) % 4]);
-        if (perimeter < 4.0 * config.pattern_fit_max_side) {
-          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tags[i].id, config.marker_border_bits),
-                                 corners);
-        }
+      for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+    });
+    // The small markers, smallest first, up to pattern_fit_max_markers of them.
+    std::vector<std::pair<double, size_t>> small;
+    for (size_t i = 0; i < tags.size(); ++i) {
+      double perimeter = 0.0;
+      for (int k = 0; k < 4; ++k) perimeter += cv::norm(tags[i].corners[k] - tags[i].corners[(k + 1) % 4]);
+      if (perimeter < 4.0 * config.pattern_fit_max_side) small.emplace_back(perimeter, i);
+    }
+    std::sort(small.begin(), small.end());
+    if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
+      small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
+    }
+    cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
+      for (int k = range.start; k < range.end; ++k) {
+        ArucoTag& tag = tags[small[k].second];
+        RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
+                               tag.corners);
       }
     });
   }

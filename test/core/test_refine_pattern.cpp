@@ -133,5 +133,43 @@ TEST(PatternFit, ConfiguredBySideLength) {
   EXPECT_GT(MaxError(border_only[0].corners, scene.truth), 0.1);
 }
 
+// A crowded frame: only the pattern_fit_max_markers smallest markers get the fit, the rest keep the
+// edge fit's corners.
+TEST(PatternFit, CappedPerFrameSmallestFirst) {
+  const sim::Camera camera = test::RoverCamera();
+  std::vector<sim::Marker> markers;
+  for (int i = 0; i < 6; ++i) {
+    const double range = 3.0 + 0.8 * i;  // 50 down to 24 px
+    markers.push_back(sim::FacingCamera(i, 0.15, {(-0.5 + 0.2 * i) * range, 0.0, range}, 20.0, 5.0, 10.0 * i));
+  }
+  sim::RenderOptions options;
+  options.blur_sigma = 0.6;
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, markers, options), grey);
+  DetectorConfig capped;
+  capped.pattern_fit_max_markers = 2;
+  DetectorConfig edge_only;
+  edge_only.pattern_fit_max_side = 0;
+  auto fitted = Detect(grey, Detector(capped));
+  auto plain = Detect(grey, Detector(edge_only));
+  ASSERT_EQ(fitted.size(), 6u);
+  ASSERT_EQ(plain.size(), 6u);
+  const auto by_id = [](const ArucoTag& a, const ArucoTag& b) { return a.id < b.id; };
+  std::sort(fitted.begin(), fitted.end(), by_id);
+  std::sort(plain.begin(), plain.end(), by_id);
+  for (int i = 0; i < 6; ++i) {
+    const double moved = MaxError(fitted[i].corners, plain[i].corners);
+    // Ids 4 and 5 are the farthest, smallest markers.
+    if (i >= 4) {
+      EXPECT_GT(moved, 1e-3) << "id " << i << " should have been fitted";
+      EXPECT_LE(MaxError(fitted[i].corners, sim::ProjectCorners(camera, markers[i])), 0.05) << "id " << i;
+    } else {
+      EXPECT_EQ(moved, 0.0) << "id " << i << " is over the cap";
+    }
+  }
+  capped.pattern_fit_max_markers = -1;
+  EXPECT_THROW(Detector{capped}, Error);
+}
+
 }  // namespace
 }  // namespace arucotag
