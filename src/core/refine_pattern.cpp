@@ -96,6 +96,21 @@ bool SegmentInSquare(const Vec2& a, const Vec2& b, double x0, double y0, double&
   return true;
 }
 
+// The x extent [x0, x1] of the convex quad q along the horizontal line at y; false when the line
+// misses it.
+bool SpanAt(const std::array<Vec2, 4>& q, double y, double& x0, double& x1) {
+  x0 = 1e18;
+  x1 = -1e18;
+  for (int e = 0; e < 4; ++e) {
+    const Vec2 &a = q[e], &b = q[(e + 1) % 4];
+    if ((a.y - y) * (b.y - y) > 0 || a.y == b.y) continue;
+    const double x = a.x + (b.x - a.x) * (y - a.y) / (b.y - a.y);
+    x0 = std::min(x0, x);
+    x1 = std::max(x1, x);
+  }
+  return x0 <= x1;
+}
+
 // Homography taking grid coordinates (u, v) in [0, cells]^2 to the image, with the grid's corners
 // (0, 0), (cells, 0), (cells, cells), (0, cells) at corners[0..3] (the closed-form square-to-quad
 // map, in double precision).
@@ -359,8 +374,20 @@ class PatternFit {
       if (qx0 > qx1) continue;
       const int xa = std::max(roi_.x, static_cast<int>(std::floor(qx0 + 0.5)));
       const int xb = std::min(roi_.x + roi_.width - 1, static_cast<int>(std::ceil(qx1 - 0.5)));
+      // Pixels the quad covers whole: its left bound is convex and its right bound concave in y, so
+      // over the band they are tightest at the band's lines.
+      double top0, top1, bottom0, bottom1;
+      int inner_a = xb + 1, inner_b = xb;
+      if (SpanAt(q, band0, top0, top1) && SpanAt(q, band1, bottom0, bottom1)) {
+        inner_a = static_cast<int>(std::ceil(std::max(top0, bottom0) + 0.5));
+        inner_b = static_cast<int>(std::floor(std::min(top1, bottom1) - 0.5));
+      }
       for (int x = xa; x <= xb; ++x) {
         float* out = &cover_[(static_cast<size_t>(y - roi_.y) * roi_.width + (x - roi_.x)) * kChannels];
+        if (x >= inner_a && x <= inner_b) {
+          out[0] += 1.0f;
+          continue;
+        }
         const double px = x - 0.5, py = y - 0.5;
         // Inside every edge with all four pixel corners: fully covered, no boundary to move.
         bool inside = true, outside = false;
@@ -591,6 +618,15 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
     y1 = std::max<double>(y1, corners[i].y);
   }
   if (!(side > 0.0) || !std::isfinite(x0 + x1 + y0 + y1)) return false;
+  // A marker's image is a convex quad; anything else (folded, collapsed) has no homography to fit.
+  int turns = 0;
+  for (int i = 0; i < 4; ++i) {
+    const cv::Point2f a = corners[(i + 1) % 4] - corners[i], b = corners[(i + 2) % 4] - corners[(i + 1) % 4];
+    const double cross = static_cast<double>(a.x) * b.y - static_cast<double>(a.y) * b.x;
+    if (std::abs(cross) < 1e-3 * side * side) return false;
+    turns += cross > 0 ? 1 : -1;
+  }
+  if (std::abs(turns) != 4) return false;
   // The marker, its quiet-zone strip and room for the blur kernel, as float. (A fit on a 2x2-averaged
   // copy was tried for speed: 4x cheaper, but 0.06 px off on blurred markers, so not used.)
   const double margin = side / cells + kBlurRadius + 2;

@@ -1,4 +1,7 @@
 // The whole-pattern corner fit on its own: its cell model, what it refuses, and what it repairs.
+#include <cmath>
+#include <limits>
+
 #include <gtest/gtest.h>
 
 #include <opencv2/imgproc.hpp>
@@ -115,6 +118,26 @@ TEST(PatternFit, RefusesMarkersOffTheImageOrWithoutContrast) {
   std::array<cv::Point2f, 4> corners = scene.truth;
   EXPECT_FALSE(RefineCornersOnPattern(flat, MarkerCells(*dictionary, 7), corners));
   EXPECT_EQ(corners, scene.truth);
+}
+
+// Folded, collapsed or non-finite quads have no homography: refused, corners untouched.
+TEST(PatternFit, RefusesDegenerateQuads) {
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  const SmallMarker scene = RenderSmallMarker(7, 0.6, 2.0);
+  const cv::Mat black = MarkerCells(*dictionary, 7);
+  std::array<cv::Point2f, 4> folded = {scene.truth[0], scene.truth[2], scene.truth[1], scene.truth[3]};
+  std::array<cv::Point2f, 4> collapsed = {scene.truth[0], scene.truth[0], scene.truth[0], scene.truth[0]};
+  std::array<cv::Point2f, 4> line = {scene.truth[0], scene.truth[1], scene.truth[1] * 2.0f - scene.truth[0],
+                                     scene.truth[1] * 3.0f - scene.truth[0] * 2.0f};
+  std::array<cv::Point2f, 4> not_finite = scene.truth;
+  not_finite[2].x = std::numeric_limits<float>::quiet_NaN();
+  for (auto quad : {folded, collapsed, line}) {
+    const auto start = quad;
+    EXPECT_FALSE(RefineCornersOnPattern(scene.grey, black, quad));
+    EXPECT_EQ(quad, start);
+  }
+  EXPECT_FALSE(RefineCornersOnPattern(scene.grey, black, not_finite));
+  EXPECT_TRUE(std::isnan(not_finite[2].x));
 }
 
 // pattern_fit_max_side decides which markers get the fit; negative values are refused.
