@@ -34,11 +34,19 @@ struct SmallMarker {
 /// each pixel the area-weighted mean of the cells it covers through the quad's homography; they are
 /// split into black and white by Otsu's threshold over the cells; a marker
 /// needs a clear gap between the two, a whole black border (white with `detect_inverted`, bits then
-/// inverted) and an exact dictionary match in one of the four rotations, no error correction.
+/// inverted), a quiet zone around it, an exact dictionary match in one of the four rotations (no
+/// error correction) and a pattern that explains the pixels (PatternExplainsPixels).
 /// Returns false for quads at or above kSmallCandidateMaxSide, partly outside the frame, or not a
 /// marker.
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker);
+
+/// Whether marker `id`'s printed pattern, fitted to the frame from `corners` (cv::aruco order) by
+/// RefineCornersOnPattern, explains the pixels there. A reading that merely happens to match a code
+/// (a bigger marker's inner cells read on a coarser grid, texture) leaves many pixels unexplained
+/// and is refused: the second chance's check against false positives.
+bool PatternExplainsPixels(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int id, int border_bits,
+                           const std::array<cv::Point2f, 4>& corners);
 
 /// The second chance of cv::aruco::detectMarkers' rejected candidates: every small one DecodeSmall
 /// identifies, except where a marker of the same id was already found (`found`, or an earlier
