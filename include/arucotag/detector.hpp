@@ -57,11 +57,16 @@ struct DetectorConfig {
   /// decoded on the full frame as cv::aruco decodes them and start refinement from cv::aruco's own
   /// corners: the same ids and corners as the full search (cv::aruco::detectMarkers with this
   /// configuration; test_fast_path.cpp checks 0.1 px on the real photos) in a fraction of the time.
-  /// Serves corner_refinement "edge" and "subpix" with black markers; other settings, or false, run
-  /// cv::aruco::detectMarkers itself. Both paths give candidates under 30 px that cv::aruco's reading
-  /// rejects a second chance (cells estimated from every pixel they touch, exact code match only):
-  /// every marker the full search finds is found, plus tiny and steeply tilted ones it misses
-  /// (a 0.15 m marker at 10 m, 60 degrees; test_small_markers.cpp).
+  /// Under about 15 px it can differ both ways: on rendered 12-30 px markers it missed 3 of 217 the
+  /// full search found (no candidate there) and found 5 it did not. Serves corner_refinement "edge"
+  /// and "subpix" with black markers; other settings, or false, run cv::aruco::detectMarkers itself.
+  /// Both paths give candidates under 30 px that cv::aruco's reading rejects a second chance (cells
+  /// estimated from every pixel they touch, exact code match, a quiet zone, and the fitted pattern
+  /// must explain the pixels): tiny and steeply tilted markers cv::aruco misses are found (a 0.15 m
+  /// marker at 10 m, 60 degrees; test_small_markers.cpp), with no more false positives than
+  /// cv::aruco's own. Such markers are refined like the others with "edge" and "subpix"; with
+  /// "contour" and "apriltag" they keep the decoder's corners (and "apriltag"'s candidate search
+  /// does not find the steepest ones).
   bool fast_path = true;
   /// With fast_path: successive Detect calls on one Detector are frames of one video stream. A frame
   /// is then searched only around the previous frame's markers, at quarter resolution everywhere,

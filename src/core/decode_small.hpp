@@ -36,7 +36,8 @@ struct SmallMarker {
 /// needs a clear gap between the two, a whole black border (white with `detect_inverted`, bits then
 /// inverted), a quiet zone around it, an exact dictionary match in one of the four rotations (no
 /// error correction) and a pattern that explains the pixels (PatternExplainsPixels).
-/// Returns false for quads at or above kSmallCandidateMaxSide, partly outside the frame, or not a
+/// Samples outside the frame are skipped (Detect's candidates keep min_distance_to_border from it).
+/// Returns false for quads at or above kSmallCandidateMaxSide, or not a
 /// marker.
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker);

@@ -67,7 +67,8 @@ void Validate(const DetectorConfig& c) {
   Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
           "corner_refinement_min_accuracy", "must be > 0");
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
-  Require(c.pattern_fit_max_side >= 0, "pattern_fit_max_side", "must be >= 0 px (0 turns the pattern fit off)");
+  Require(c.pattern_fit_max_side >= 0 && c.pattern_fit_max_side <= 256, "pattern_fit_max_side",
+          "must be 0-256 px (0 turns the pattern fit off; larger markers need no pattern fit)");
   Require(c.pattern_fit_max_markers >= 0, "pattern_fit_max_markers", "must be >= 0 (0 = no limit)");
   Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
   for (const auto& [id, side] : c.side_lengths) {

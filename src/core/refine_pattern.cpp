@@ -34,6 +34,9 @@ constexpr int kBlurRadius = 5;
 constexpr double kStartBlurVariance = 0.36;  // sigma 0.6 px, typical of a focused camera
 // px: edge-refined corners of markers under 20 px, seen at 60 degrees, start up to 1.3 px off.
 constexpr double kMaxMove = 2.0;
+// px: larger markers are refused. The edge fit is exact there, and the per-thread coverage buffers
+// grow with the square of the side (a few MB at this size).
+constexpr double kMaxSide = 256.0;
 constexpr int kMaxIterations = 20;
 constexpr double kNoiseFloorStep = 0.01;  // px
 // Share of pixels the fitted pattern may miss by over a quarter of its contrast. Measured: 0-0.3 %
@@ -618,6 +621,10 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
     y1 = std::max<double>(y1, corners[i].y);
   }
   if (!(side > 0.0) || !std::isfinite(x0 + x1 + y0 + y1)) return false;
+  // Off the image: nothing to fit (and no float-to-int overflow below for far-away corners).
+  if (x1 < 0.0 || y1 < 0.0 || x0 > grey.cols - 1.0 || y0 > grey.rows - 1.0 || side > kMaxSide) {
+    return false;
+  }
   // A marker's image is a convex quad; anything else (folded, collapsed) has no homography to fit.
   int turns = 0;
   for (int i = 0; i < 4; ++i) {

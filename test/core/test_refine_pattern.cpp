@@ -120,7 +120,8 @@ TEST(PatternFit, RefusesMarkersOffTheImageOrWithoutContrast) {
   EXPECT_EQ(corners, scene.truth);
 }
 
-// Folded, collapsed or non-finite quads have no homography: refused, corners untouched.
+// Folded, collapsed or non-finite quads have no homography, far-away and huge ones nothing for the
+// fit to do: refused, corners untouched.
 TEST(PatternFit, RefusesDegenerateQuads) {
   const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
   const SmallMarker scene = RenderSmallMarker(7, 0.6, 2.0);
@@ -131,7 +132,11 @@ TEST(PatternFit, RefusesDegenerateQuads) {
                                      scene.truth[1] * 3.0f - scene.truth[0] * 2.0f};
   std::array<cv::Point2f, 4> not_finite = scene.truth;
   not_finite[2].x = std::numeric_limits<float>::quiet_NaN();
-  for (auto quad : {folded, collapsed, line}) {
+  std::array<cv::Point2f, 4> far_away;  // finite, convex, nowhere near the image
+  for (int i = 0; i < 4; ++i) far_away[i] = scene.truth[i] * 1e9f;
+  std::array<cv::Point2f, 4> huge;  // a 400 px square: the edge fit's job
+  huge = {cv::Point2f(100, 100), cv::Point2f(500, 100), cv::Point2f(500, 500), cv::Point2f(100, 500)};
+  for (auto quad : {folded, collapsed, line, far_away, huge}) {
     const auto start = quad;
     EXPECT_FALSE(RefineCornersOnPattern(scene.grey, black, quad));
     EXPECT_EQ(quad, start);
