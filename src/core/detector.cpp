@@ -242,7 +242,10 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     tag.side_length = detector.SideLength(tag.id);
     tags.push_back(tag);
   };
-  if (internal::FastPathSupports(detector.config())) {
+  // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
+  // go to cv::aruco, which returns nothing for them.
+  constexpr int kMinFastPathSide = 32;
+  if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
     // A moved-from Detector has no tracking state: it still detects, frame by frame.
     for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
                                                   *detector.parameters(), detector.tracking_.get())) {

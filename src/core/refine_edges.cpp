@@ -160,6 +160,9 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
 
 int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
   CV_Assert(grey.type() == CV_8UC1 && cells >= 3);
+  for (const auto& c : corners) {
+    if (!std::isfinite(c.x) || !std::isfinite(c.y)) return 0;  // nothing to measure from
+  }
   // Several passes: better corners give better edge directions and profile positions.
   const std::array<cv::Point2f, 4> start = corners;
   int moved = 0;

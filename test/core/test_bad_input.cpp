@@ -1,4 +1,6 @@
 // Every bad input gets an arucotag::Error that says what is wrong; nothing crashes.
+#include <cmath>
+
 #include <gtest/gtest.h>
 
 #include <arucotag/arucotag.hpp>
@@ -21,6 +23,30 @@ TEST(BadInput, EmptyImageEverywhere) {
   EXPECT_NE(ErrorOf([&] { PreprocessFrame(empty, out); }).find("empty"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { Detect(empty, Detector()); }).find("empty"), std::string::npos);
   EXPECT_NE(ErrorOf([&] { DrawDetections(empty, {}); }).find("empty"), std::string::npos);
+}
+
+// Frames too small to hold a marker (a 1-pixel row, a thumbnail) give no tags on either path; the
+// fast path's pyramid used to throw cv::Exception from cv::resize here.
+TEST(BadInput, TinyFramesGiveNoTags) {
+  for (const cv::Size size : {cv::Size(1, 1), cv::Size(3, 3), cv::Size(1, 50), cv::Size(50, 1), cv::Size(31, 200)}) {
+    const cv::Mat frame(size, CV_8UC1, cv::Scalar(128));
+    for (const bool fast : {true, false}) {
+      DetectorConfig config;
+      config.fast_path = fast;
+      std::vector<ArucoTag> tags;
+      EXPECT_NO_THROW(tags = Detect(frame, Detector(config))) << size << " fast " << fast;
+      EXPECT_TRUE(tags.empty());
+    }
+  }
+}
+
+// Refinement from non-finite corners measures nothing and moves nothing.
+TEST(BadInput, NonFiniteCornersToRefinement) {
+  const cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(128));
+  std::array<cv::Point2f, 4> corners = {cv::Point2f(10, 10), cv::Point2f(30, 10), cv::Point2f(30, 30),
+                                        cv::Point2f(std::nanf(""), 30)};
+  EXPECT_EQ(RefineCornersOnEdges(grey, corners, 6), 0);
+  EXPECT_EQ(corners[1], cv::Point2f(30, 10));
 }
 
 TEST(BadInput, FourChannelImageToDrawDetections) {
