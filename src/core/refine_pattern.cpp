@@ -15,6 +15,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 
@@ -31,9 +32,11 @@ constexpr int kBlur = 12;
 // kernel radius that range needs.
 constexpr double kMaxBlurVariance = 2.25;
 constexpr int kBlurRadius = 5;
-constexpr double kStartBlurVariance = 0.36;  // sigma 0.6 px, typical of a focused camera
+// Blur variances (px^2) tried for the start: sharp, sigma 0.5, 0.8 and 1.2 px.
+constexpr double kStartBlurVariances[] = {0.0, 0.25, 0.64, 1.44};
 // px: edge-refined corners of markers under 20 px, seen at 60 degrees, start up to 1.3 px off.
 constexpr double kMaxMove = 2.0;
+constexpr double kCheckerboardCell = 4.0;  // px
 // px: larger markers are refused. The edge fit is exact there, and the per-thread coverage buffers
 // grow with the square of the side (a few MB at this size).
 constexpr double kMaxSide = 256.0;
@@ -331,11 +334,17 @@ class PatternFit {
     double shoelace = 0.0;
     for (int k = 0; k < 4; ++k) shoelace += Cross(outline[k], outline[(k + 1) % 4]);
     area_ = 0.5 * std::abs(shoelace);
+    // Cells of 4 px or more: every other pixel (a checkerboard) still sees each cell edge from both
+    // sides many times over, and halves the per-sample work.
+    const double cell = std::sqrt(area_) / (cells_ + 2 * kMargin);
+    const bool checkerboard = cell >= kCheckerboardCell;
+    if (checkerboard) area_ *= 0.5;
     for (int y = box.y; y < box.y + box.height; ++y) {
       const float* row = grey_.ptr<float>(y);
       for (int x = box.x; x < box.x + box.width; ++x) {
         const Vec2 g = Apply(to_grid, x - origin_.x, y - origin_.y);
         if (g.x < lo || g.x > hi || g.y < lo || g.y > hi) continue;
+        if (checkerboard && (x + y) % 2 != 0) continue;
         samples_.push_back({x, y, static_cast<double>(row[x])});
       }
     }
@@ -528,22 +537,36 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     params[2 * i] = start[i].x;
     params[2 * i + 1] = start[i].y;
   }
-  params[kBlur] = kStartBlurVariance;
-  // Brightness and contrast at the start: a linear least-squares fit with the corners held.
+  // Brightness, contrast and blur at the start: for each of a few blur widths a linear least-squares
+  // fit of brightness and contrast with the corners held; the best of them starts the fit (starting
+  // from one fixed width cost one or two extra iterations on sharp or very blurred markers).
   {
     std::vector<float> cover;
     fit.Cover(start);
-    fit.Blurred(params[kBlur], cover, nullptr);
-    cv::Matx22d a = cv::Matx22d::zeros();
-    cv::Vec2d b(0, 0);
-    for (size_t k = 0; k < fit.size(); ++k) {
-      const cv::Vec2d j(1.0, cover[k]);
-      a += j * j.t();
-      b += j * fit.samples()[k].grey;
+    double best = std::numeric_limits<double>::infinity();
+    for (const double variance : kStartBlurVariances) {
+      fit.Blurred(variance, cover, nullptr);
+      cv::Matx22d a = cv::Matx22d::zeros();
+      cv::Vec2d b(0, 0);
+      double yy = 0.0;
+      for (size_t k = 0; k < fit.size(); ++k) {
+        const double grey_level = fit.samples()[k].grey;
+        const cv::Vec2d j(1.0, cover[k]);
+        a += j * j.t();
+        b += j * grey_level;
+        yy += grey_level * grey_level;
+      }
+      if (std::abs(cv::determinant(a)) < 1e-9) continue;
+      const cv::Vec2d x = a.inv() * b;
+      const double residual = yy - x.dot(b);  // sum of squares left by the least-squares fit
+      if (residual < best) {
+        best = residual;
+        params[8] = x[0];
+        params[9] = x[1];
+        params[kBlur] = variance;
+      }
     }
-    const cv::Vec2d x = a.inv() * b;
-    params[8] = x[0];
-    params[9] = x[1];
+    if (!std::isfinite(best)) return false;
   }
   const double contrast = std::abs(params[9]);
   if (!(contrast > 10.0)) return false;  // no pattern to fit (or a wrong id)
