@@ -80,7 +80,7 @@ struct DetectorConfig {
   int full_search_interval = 8;  ///< frames, >= 1: bound on the delay before a new small marker is found
 
   /// With corner_refinement kEdge: markers whose mean side is shorter than this (px) are refined
-  /// further by fitting their whole decoded pattern (RefineCornersOnPattern), 0.2-0.5 ms each. Below
+  /// further by fitting their whole decoded pattern (RefineCornersOnPattern), 0.25-0.8 ms each. Below
   /// about 50 px the border alone leaves corners tenths of a pixel off and the pose flips; the fit
   /// brings them to about 0.02 px. 0 turns it off.
   int pattern_fit_max_side = 56;
