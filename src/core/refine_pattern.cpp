@@ -18,7 +18,6 @@
 #include <limits>
 #include <vector>
 
-
 namespace arucotag {
 
 namespace {
@@ -36,12 +35,14 @@ constexpr int kBlurRadius = 5;
 constexpr double kStartBlurVariances[] = {0.0, 0.25, 0.64, 1.44};
 // px: edge-refined corners of markers under 20 px, seen at 60 degrees, start up to 1.3 px off.
 constexpr double kMaxMove = 2.0;
-constexpr double kCheckerboardCell = 4.0;  // px
+// px: cells at least this wide are sampled on every other pixel (see SelectPixels).
+constexpr double kCheckerboardCell = 4.0;
 // px: larger markers are refused. The edge fit is exact there, and the per-thread coverage buffers
 // grow with the square of the side (a few MB at this size).
 constexpr double kMaxSide = 256.0;
 constexpr int kMaxIterations = 20;
-constexpr double kNoiseFloorStep = 0.01;  // px
+// px: a rejected step smaller than this ends the fit (the cost no longer tells such steps apart).
+constexpr double kNoiseFloorStep = 0.01;
 // Share of pixels the fitted pattern may miss by over a quarter of its contrast. Measured: 0-0.3 %
 // on rendered markers (sharp, blurred, noisy) and on the printed markers of the OpenCV tutorial
 // photo; 16-20 % with another id's pattern; 50 % half occluded; 8-15 % on the ChArUco photo, whose
