@@ -45,12 +45,8 @@ constexpr double kExpandCells = 0.6;
 // Bilinear grey value at (x, y); false outside the frame.
 bool Bilinear(const cv::Mat& grey, double x, double y, double& value) {
   if (!(x >= 0.0 && y >= 0.0 && x <= grey.cols - 1.0 && y <= grey.rows - 1.0)) return false;
-  const int ix = std::min(static_cast<int>(x), grey.cols - 2), iy = std::min(static_cast<int>(y), grey.rows - 2);
-  if (ix < 0 || iy < 0) return false;  // a one-pixel-wide frame
-  const double a = x - ix, b = y - iy;
-  const uchar* r0 = grey.ptr<uchar>(iy) + ix;
-  const uchar* r1 = grey.ptr<uchar>(iy + 1) + ix;
-  value = (1.0 - b) * ((1.0 - a) * r0[0] + a * r0[1]) + b * ((1.0 - a) * r1[0] + a * r1[1]);
+  if (grey.cols < 2 || grey.rows < 2) return false;  // a one-pixel-wide frame
+  value = SampleBilinear(grey, x, y);
   return true;
 }
 
@@ -61,17 +57,7 @@ bool SampleUnit(const cv::Mat& grey, const cv::Matx33d& h, double u, double v, d
   return Bilinear(grey, (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w, value);
 }
 
-cv::Point2f MapUnit(const cv::Matx33d& h, double u, double v) {
-  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
-  return cv::Point2f(static_cast<float>((h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w),
-                     static_cast<float>((h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w));
-}
-
-// Homography of the unit square onto the quad: (0,0)->q0, (1,0)->q1, (1,1)->q2, (0,1)->q3.
-cv::Matx33d UnitToQuad(const std::array<cv::Point2f, 4>& q) {
-  const cv::Point2f unit[4] = {{0.f, 0.f}, {1.f, 0.f}, {1.f, 1.f}, {0.f, 1.f}};
-  return cv::Matx33d(cv::getPerspectiveTransform(unit, q.data()));
-}
+cv::Point2f MapUnit(const cv::Matx33d& h, double u, double v) { return ApplyHomography(h, u, v); }
 
 // The quad whose unit square is [u0, u1] x [v0, v1] of h's.
 cv::Matx33d SubSquare(const cv::Matx33d& h, double u0, double v0, double u1, double v1) {
@@ -275,12 +261,6 @@ bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inve
 
 }  // namespace
 
-float MeanSide(const std::array<cv::Point2f, 4>& quad) {
-  float s = 0.0f;
-  for (int i = 0; i < 4; ++i) s += static_cast<float>(cv::norm(quad[i] - quad[(i + 1) % 4]));
-  return 0.25f * s;
-}
-
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker) {
   if (grey.type() != CV_8UC1 || grey.cols < 2 || grey.rows < 2) return false;
@@ -292,7 +272,7 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   const double turn = double(d1.x) * d2.y - double(d1.y) * d2.x;
   if (!(std::fabs(turn) > 0.0)) return false;
   if (turn < 0.0) std::swap(quad[1], quad[3]);
-  const cv::Matx33d h = UnitToQuad(quad);
+  const cv::Matx33d h = SquareToQuad(quad);
   const int cells = dictionary.markerSize + 2 * border_bits;
 
   // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
@@ -330,16 +310,7 @@ namespace {
 // cv::aruco's "too close" test (_filterTooCloseCandidates): corners, in some cyclic order, closer
 // RMS than `rate` of the smaller perimeter.
 bool TooClose(const std::array<cv::Point2f, 4>& a, const std::array<cv::Point2f, 4>& b, double rate) {
-  const double limit = rate * 4.0 * std::min(MeanSide(a), MeanSide(b));
-  for (int shift = 0; shift < 4; ++shift) {
-    double sum = 0.0;
-    for (int c = 0; c < 4; ++c) {
-      const cv::Point2f d = a[(c + shift) % 4] - b[c];
-      sum += double(d.x) * d.x + double(d.y) * d.y;
-    }
-    if (sum / 4.0 < limit * limit) return true;
-  }
-  return false;
+  return CornersWithin(a, b, rate * 4.0 * std::min(MeanSide(a), MeanSide(b)));
 }
 
 std::array<cv::Point2f, 4> ToArray(const std::vector<cv::Point2f>& v) {

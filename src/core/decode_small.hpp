@@ -12,14 +12,13 @@
 #include <opencv2/aruco.hpp>
 #include <opencv2/core.hpp>
 
+#include "geometry.hpp"
+
 namespace arucotag::internal {
 
 /// Candidates with a mean side (px) below this get the second chance. Above it cv::aruco's own
 /// decoding has 5 px per cell or more and a rejection is a real one.
 constexpr float kSmallCandidateMaxSide = 30.0f;
-
-/// Mean side length (px) of a quad.
-float MeanSide(const std::array<cv::Point2f, 4>& quad);
 
 /// A marker the small decoder identified.
 struct SmallMarker {

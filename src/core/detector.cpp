@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "decode_small.hpp"
+#include "geometry.hpp"
 #include "fast_detect.hpp"
 
 namespace arucotag {
@@ -276,11 +277,10 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
     });
     // The small markers, smallest first, up to pattern_fit_max_markers of them.
-    std::vector<std::pair<double, size_t>> small;
+    std::vector<std::pair<float, size_t>> small;
     for (size_t i = 0; i < tags.size(); ++i) {
-      double perimeter = 0.0;
-      for (int k = 0; k < 4; ++k) perimeter += cv::norm(tags[i].corners[k] - tags[i].corners[(k + 1) % 4]);
-      if (perimeter < 4.0 * config.pattern_fit_max_side) small.emplace_back(perimeter, i);
+      const float side = internal::MeanSide(tags[i].corners);
+      if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
     }
     std::sort(small.begin(), small.end());
     if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {

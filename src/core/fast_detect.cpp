@@ -227,16 +227,7 @@ void FindQuads(const Pyramid& pyramid, const SearchTask& task, const DetectorCon
 // Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates: their corners (in
 // some cyclic order) closer, RMS, than `rate` of the smaller perimeter.
 bool TooClose(const Quad& a, const Quad& b, double rate) {
-  const double limit = rate * std::min(a.perimeter, b.perimeter);
-  for (int fc = 0; fc < 4; ++fc) {
-    double dist_sq = 0.0;
-    for (int c = 0; c < 4; ++c) {
-      const cv::Point2f d = a.corners[(c + fc) % 4] - b.corners[c];
-      dist_sq += double(d.x) * d.x + double(d.y) * d.y;
-    }
-    if (dist_sq / 4.0 < limit * limit) return true;
-  }
-  return false;
+  return CornersWithin(a.corners, b.corners, rate * std::min(a.perimeter, b.perimeter));
 }
 
 // cv::aruco's _filterTooCloseCandidates within each pyramid level: of quads too close to each
@@ -279,22 +270,6 @@ std::vector<Quad> MergeQuads(std::vector<Quad> quads, double rate) {
     if (best[i] >= 0) merged.push_back(quads[best[i]]);
   }
   return merged;
-}
-
-// Homography of the unit square onto a quad: (0,0)->q0, (1,0)->q1, (1,1)->q2, (0,1)->q3, in closed
-// form (Heckbert), as the 3x3 matrix [a b c; d e f; g h 1] applied to (u, v, 1).
-cv::Matx33d SquareToQuad(const std::array<cv::Point2f, 4>& q) {
-  const double x0 = q[0].x, y0 = q[0].y, x1 = q[1].x, y1 = q[1].y, x2 = q[2].x, y2 = q[2].y, x3 = q[3].x,
-               y3 = q[3].y;
-  const double dx1 = x1 - x2, dx2 = x3 - x2, dx3 = x0 - x1 + x2 - x3;
-  const double dy1 = y1 - y2, dy2 = y3 - y2, dy3 = y0 - y1 + y2 - y3;
-  double g = 0.0, h = 0.0;
-  const double det = dx1 * dy2 - dx2 * dy1;
-  if ((dx3 != 0.0 || dy3 != 0.0) && det != 0.0) {
-    g = (dx3 * dy2 - dx2 * dy3) / det;
-    h = (dx1 * dy3 - dx3 * dy1) / det;
-  }
-  return {x1 - x0 + g * x1, x3 - x0 + h * x3, x0, y1 - y0 + g * y1, y3 - y0 + h * y3, y0, g, h, 1.0};
 }
 
 // Bits set in x (no popcnt instruction in the x86-64 baseline this is built for).

@@ -7,18 +7,11 @@
 
 #include <opencv2/imgproc.hpp>
 
+#include "geometry.hpp"
+
 namespace arucotag {
 
 namespace {
-
-// Bilinear grey value; the caller keeps p at least one pixel inside the image.
-double Sample(const cv::Mat& grey, const cv::Point2d& p) {
-  const int x = static_cast<int>(std::floor(p.x)), y = static_cast<int>(std::floor(p.y));
-  const double fx = p.x - x, fy = p.y - y;
-  const uchar* r0 = grey.ptr<uchar>(y) + x;
-  const uchar* r1 = grey.ptr<uchar>(y + 1) + x;
-  return (1 - fy) * ((1 - fx) * r0[0] + fx * r0[1]) + fy * ((1 - fx) * r1[0] + fx * r1[1]);
-}
 
 // Borders at least this wide (px) leave room for flat dark and light on both sides of a profile.
 constexpr double kPlateauBorder = 5.0;
@@ -66,7 +59,10 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
         std::max(a.y, b.y) > grey.rows - 2.0) {
       continue;
     }
-    for (int i = -half; i <= half; ++i) profile[i + half] = Sample(grey, base + outward * (i * step));
+    for (int i = -half; i <= half; ++i) {
+      const cv::Point2d p = base + outward * (i * step);
+      profile[i + half] = internal::SampleBilinear(grey, p.x, p.y);
+    }
     const double dark = profile.front(), light = profile.back();
     if (light - dark < 10.0) continue;  // too little contrast to place an edge
     // Where the border is wide enough for the profile to reach flat dark and light on both sides,
@@ -166,9 +162,7 @@ int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corner
   // Several passes: better corners give better edge directions and profile positions.
   const std::array<cv::Point2f, 4> start = corners;
   int moved = 0;
-  double perimeter = 0.0;
-  for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[(i + 1) % 4] - corners[i]);
-  const int passes = perimeter < kSmallPerimeter ? 3 : 2;  // small markers start further off
+  const int passes = 4.0 * internal::MeanSide(corners) < kSmallPerimeter ? 3 : 2;  // small markers start further off
   for (int pass = 0; pass < passes; ++pass) moved = RefineOnce(grey, corners, cells);
   for (int i = 0; i < 4; ++i) {
     if (cv::norm(corners[i] - start[i]) > 4.0) corners[i] = start[i];  // drifted: distrust

@@ -13,6 +13,8 @@
 // ends up worse than the edge fit it starts from.
 #include <arucotag/refine.hpp>
 
+#include "geometry.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -119,23 +121,10 @@ bool SpanAt(const std::array<Vec2, 4>& q, double y, double& x0, double& x1) {
 }
 
 // Homography taking grid coordinates (u, v) in [0, cells]^2 to the image, with the grid's corners
-// (0, 0), (cells, 0), (cells, cells), (0, cells) at corners[0..3] (the closed-form square-to-quad
-// map, in double precision).
-cv::Matx33d GridToImage(const std::array<Vec2, 4>& c, int cells) {
-  const double sx = c[0].x - c[1].x + c[2].x - c[3].x, sy = c[0].y - c[1].y + c[2].y - c[3].y;
-  const double dx1 = c[1].x - c[2].x, dx2 = c[3].x - c[2].x, dy1 = c[1].y - c[2].y, dy2 = c[3].y - c[2].y;
-  const double det = dx1 * dy2 - dx2 * dy1;
-  const double g = (sx * dy2 - dx2 * sy) / det, h = (dx1 * sy - sx * dy1) / det;
-  const cv::Matx33d unit(c[1].x - c[0].x + g * c[1].x, c[3].x - c[0].x + h * c[3].x, c[0].x,
-                         c[1].y - c[0].y + g * c[1].y, c[3].y - c[0].y + h * c[3].y, c[0].y,  //
-                         g, h, 1.0);
+// (0, 0), (cells, 0), (cells, cells), (0, cells) at corners[0..3].
+cv::Matx33d GridToImage(const std::array<Vec2, 4>& corners, int cells) {
   const double k = 1.0 / cells;
-  return unit * cv::Matx33d(k, 0, 0, 0, k, 0, 0, 0, 1);
-}
-
-Vec2 Apply(const cv::Matx33d& h, double u, double v) {
-  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
-  return {(h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w};
+  return internal::SquareToQuad(corners) * cv::Matx33d(k, 0, 0, 0, k, 0, 0, 0, 1);
 }
 
 // The (cells+1)^2 grid vertices for the corners, relative to `origin` (keeps float round-off out).
@@ -145,7 +134,7 @@ void GridVertices(const std::array<Vec2, 4>& corners, const Vec2& origin, int ce
   const cv::Matx33d h = GridToImage(local, cells);
   out.resize((cells + 1) * (cells + 1));
   for (int v = 0; v <= cells; ++v) {
-    for (int u = 0; u <= cells; ++u) out[v * (cells + 1) + u] = Apply(h, u, v) + origin;
+    for (int u = 0; u <= cells; ++u) out[v * (cells + 1) + u] = internal::ApplyHomography(h, u, v) + origin;
   }
 }
 
@@ -321,7 +310,7 @@ class PatternFit {
     std::array<Vec2, 4> outline;
     int i = 0;
     for (const Vec2& g : {Vec2(lo, lo), Vec2(hi, lo), Vec2(hi, hi), Vec2(lo, hi)}) {
-      const Vec2 p = Apply(to_image, g.x, g.y) + origin_;
+      const Vec2 p = internal::ApplyHomography(to_image, g.x, g.y) + origin_;
       outline[i++] = p;
       x0 = std::min(x0, p.x);
       x1 = std::max(x1, p.x);
@@ -343,7 +332,7 @@ class PatternFit {
     for (int y = box.y; y < box.y + box.height; ++y) {
       const float* row = grey_.ptr<float>(y);
       for (int x = box.x; x < box.x + box.width; ++x) {
-        const Vec2 g = Apply(to_grid, x - origin_.x, y - origin_.y);
+        const Vec2 g = internal::ApplyHomography(to_grid, x - origin_.x, y - origin_.y);
         if (g.x < lo || g.x > hi || g.y < lo || g.y > hi) continue;
         if (checkerboard && (x + y) % 2 != 0) continue;
         samples_.push_back({x, y, static_cast<double>(row[x])});
@@ -636,9 +625,9 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
 bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
   CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
   const int cells = black.rows;
-  double side = 0.0, x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
+  const double side = internal::MeanSide(corners);
+  double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
   for (int i = 0; i < 4; ++i) {
-    side += 0.25 * cv::norm(corners[(i + 1) % 4] - corners[i]);
     x0 = std::min<double>(x0, corners[i].x);
     x1 = std::max<double>(x1, corners[i].x);
     y0 = std::min<double>(y0, corners[i].y);

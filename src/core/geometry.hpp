@@ -1,0 +1,68 @@
+// Quad geometry shared by the core's detection and refinement steps (internal to arucotag_core).
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+#include <opencv2/core.hpp>
+
+namespace arucotag::internal {
+
+/// Homography of the unit square onto a quad: (0,0)->q0, (1,0)->q1, (1,1)->q2, (0,1)->q3, in closed
+/// form (Heckbert), as the 3x3 matrix [a b c; d e f; g h 1] applied to (u, v, 1). A quad whose
+/// sides are parallel (or degenerate) gets the affine map.
+template <typename Point>
+cv::Matx33d SquareToQuad(const std::array<Point, 4>& q) {
+  const double x0 = q[0].x, y0 = q[0].y, x1 = q[1].x, y1 = q[1].y, x2 = q[2].x, y2 = q[2].y, x3 = q[3].x,
+               y3 = q[3].y;
+  const double dx1 = x1 - x2, dx2 = x3 - x2, dx3 = x0 - x1 + x2 - x3;
+  const double dy1 = y1 - y2, dy2 = y3 - y2, dy3 = y0 - y1 + y2 - y3;
+  double g = 0.0, h = 0.0;
+  const double det = dx1 * dy2 - dx2 * dy1;
+  if ((dx3 != 0.0 || dy3 != 0.0) && det != 0.0) {
+    g = (dx3 * dy2 - dx2 * dy3) / det;
+    h = (dx1 * dy3 - dx3 * dy1) / det;
+  }
+  return {x1 - x0 + g * x1, x3 - x0 + h * x3, x0, y1 - y0 + g * y1, y3 - y0 + h * y3, y0, g, h, 1.0};
+}
+
+/// The image of (u, v) under the homography h.
+inline cv::Point2d ApplyHomography(const cv::Matx33d& h, double u, double v) {
+  const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+  return {(h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w};
+}
+
+/// Mean side length (px) of a quad.
+inline float MeanSide(const std::array<cv::Point2f, 4>& quad) {
+  float s = 0.0f;
+  for (int i = 0; i < 4; ++i) s += static_cast<float>(cv::norm(quad[i] - quad[(i + 1) % 4]));
+  return 0.25f * s;
+}
+
+/// Whether two quads' corners, matched in some cyclic order, are closer than `limit` (px, RMS over
+/// the four corners): cv::aruco's test for one candidate traced twice (_filterTooCloseCandidates).
+inline bool CornersWithin(const std::array<cv::Point2f, 4>& a, const std::array<cv::Point2f, 4>& b, double limit) {
+  for (int shift = 0; shift < 4; ++shift) {
+    double sum = 0.0;
+    for (int c = 0; c < 4; ++c) {
+      const cv::Point2f d = a[(c + shift) % 4] - b[c];
+      sum += double(d.x) * d.x + double(d.y) * d.y;
+    }
+    if (sum / 4.0 < limit * limit) return true;
+  }
+  return false;
+}
+
+/// Bilinear grey value of an 8-bit single-channel image, at least 2x2, at (x, y); the caller keeps
+/// (x, y) within [0, cols - 1] x [0, rows - 1].
+inline double SampleBilinear(const cv::Mat& grey, double x, double y) {
+  const int ix = std::min(static_cast<int>(std::floor(x)), grey.cols - 2);
+  const int iy = std::min(static_cast<int>(std::floor(y)), grey.rows - 2);
+  const double a = x - ix, b = y - iy;
+  const uchar* r0 = grey.ptr<uchar>(iy) + ix;
+  const uchar* r1 = grey.ptr<uchar>(iy + 1) + ix;
+  return (1.0 - b) * ((1.0 - a) * r0[0] + a * r0[1]) + b * ((1.0 - a) * r1[0] + a * r1[1]);
+}
+
+}  // namespace arucotag::internal
