@@ -270,8 +270,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
   }
   const DetectorConfig& config = detector.config();
   if (config.corner_refinement == CornerRefinement::kEdge) {
-    // Tags are independent: refine them on all cores (tens of microseconds each, a few hundred with
-    // the pattern fit).
+    // Tags are independent: refine them on all cores (tens of microseconds each).
     const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
     cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
       for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
