@@ -110,9 +110,8 @@ int Main(int argc, char** argv) {
 
   ros::NodeHandle nh;
   const std::string detector = std::string(kNamespace) + "/detector";
-  // ExactTime: camera_info goes out first with the image's stamp, so the set is complete the
-  // moment the image arrives (ApproximateTime would hold each set until the next frame).
-  ros::param::set(detector + "/approximate_sync", false);
+  // Raw only: the bench times the raw path (auto would also subscribe <image>/compressed).
+  ros::param::set(detector + "/image_transport", std::string("raw"));
   ros::param::set(detector + "/queue_size", 5);
   // The core's default refinement, whatever the nodelet would pick without a yaml: (c) and (d) must
   // run the same pipeline.

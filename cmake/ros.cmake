@@ -39,4 +39,12 @@ if(CATKIN_ENABLE_TESTING)
     target_link_libraries(test_ros_${name} arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
     add_dependencies(test_ros_${name} arucotag_nodelet detector_node ${PROJECT_NAME}_generate_messages_cpp)
   endforeach()
+
+  # Stamp patterns of real drivers and bags, on the real photos in test/data.
+  add_rostest_gtest(test_ros_stamps test/ros/stamps.test test/ros/test_stamps.cpp test/ros/rig.cpp)
+  target_include_directories(test_ros_stamps PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(test_ros_stamps SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(test_ros_stamps arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
+  target_compile_definitions(test_ros_stamps PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
+  add_dependencies(test_ros_stamps arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
 endif()

@@ -2,9 +2,17 @@
 // tags, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
 // parameters.cpp; this file is wiring. Every callback runs on the nodelet's single-threaded queue,
 // except the connect callbacks (publisher threads), which only touch the subscriptions.
+//
+// Input model: real drivers stamp camera_info apart from the image, send one frame, repeat or zero
+// stamps and send clouds slower than images, and bags loop. So nothing is synchronized: each image
+// is processed as it arrives, with the latest camera_info and the cached cloud nearest in stamp
+// (within ~cloud_max_dt; PnP alone otherwise). Only before the first camera_info ever comes do
+// images wait for it (~camera_info_wait). With ~output_frame, images pass a tf2_ros::MessageFilter
+// first, so the callback never blocks on TF and a frame goes out in output_frame or not at all.
 #include <arucotag/ros/conversions.hpp>  // first: it renames the generated ArucoTag message
 #include <arucotag/ros/parameters.hpp>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <deque>
@@ -16,14 +24,12 @@
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <dynamic_reconfigure/server.h>
 #include <image_transport/image_transport.h>
-#include <message_filters/pass_through.h>
-#include <message_filters/subscriber.h>
-#include <message_filters/sync_policies/approximate_time.h>
-#include <message_filters/sync_policies/exact_time.h>
-#include <message_filters/synchronizer.h>
+#include <message_filters/cache.h>
 #include <nodelet/nodelet.h>
+#include <opencv2/imgproc.hpp>
 #include <pluginlib/class_list_macros.hpp>
 #include <tf2_ros/buffer.h>
+#include <tf2_ros/message_filter.h>
 #include <tf2_ros/transform_broadcaster.h>
 #include <tf2_ros/transform_listener.h>
 
@@ -40,20 +46,33 @@ using sensor_msgs::Image;
 using sensor_msgs::ImageConstPtr;
 using sensor_msgs::PointCloud2;
 using sensor_msgs::PointCloud2ConstPtr;
-namespace policies = message_filters::sync_policies;
+using Transport = NodeletParameters::Transport;
 
-constexpr double kThrottle = 5.0;        // s between repeats of one warning or error
+constexpr double kThrottle = 5.0;        // s between repeats of one kind of warning or error
 constexpr size_t kStatsWindow = 100;     // frames behind the rates and times in diagnostics
 constexpr double kRecentError = 10.0;    // s an error keeps the diagnostic status at WARN
 
 using Clock = std::chrono::steady_clock;
 
-// Synchronizers of different arity and policy behind one owner; the callback is a member function.
-template <class Policy, class Owner, class Callback, class... Filters>
-std::shared_ptr<void> MakeSynchronizer(int queue_size, Owner* owner, Callback callback, Filters&... filters) {
-  auto sync = std::make_shared<message_filters::Synchronizer<Policy>>(Policy(queue_size), filters...);
-  sync->registerCallback(callback, owner);
-  return sync;
+double Ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
+
+const char* FailureName(tf2_ros::FilterFailureReason reason) {
+  switch (reason) {
+    case tf2_ros::filter_failure_reasons::OutTheBack:
+      return "older than the TF buffer";
+    case tf2_ros::filter_failure_reasons::EmptyFrameID:
+      return "the image has no frame_id";
+    default:
+      return "no transform came before newer images filled the queue (~queue_size)";
+  }
+}
+
+// A quantile of a small window (copies: diagnostics run once a second).
+double Quantile(std::deque<double> values, double q) {
+  if (values.empty()) return 0.0;
+  const size_t k = std::min(values.size() - 1, static_cast<size_t>(q * (values.size() - 1) + 0.5));
+  std::nth_element(values.begin(), values.begin() + k, values.end());
+  return values[k];
 }
 
 }  // namespace
@@ -71,22 +90,31 @@ class DetectorNodelet : public nodelet::Nodelet {
 
   void OnImage(const ImageConstPtr& image);
   void OnCompressed(const CompressedImageConstPtr& compressed);
+  void Admit(const ImageConstPtr& image, Transport from);
+  void CheckStamp(const ros::Time& stamp);
+  void KeepTransport(Transport from);
   void OnInfo(const CameraInfoConstPtr& info);
   void OnCloud(const PointCloud2ConstPtr& cloud);
-  void OnSynced(const ImageConstPtr& image, const CameraInfoConstPtr& info, const PointCloud2ConstPtr& cloud);
-  void OnSyncedNoCloud(const ImageConstPtr& image, const CameraInfoConstPtr& info);
-  std::string FallbackReason() const;
+  void StopWaitingForInfo();
+  void Route(const ImageConstPtr& image);
+  void OnTfFailure(const ImageConstPtr& image, tf2_ros::FilterFailureReason reason);
 
-  void Process(const ImageConstPtr& image, const CameraInfoConstPtr& info, const PointCloud2ConstPtr& cloud);
-  std::optional<CameraModel> CameraFor(const CameraInfoConstPtr& info, const cv::Size& size);
+  void Process(const ImageConstPtr& image);
+  std::optional<CameraModel> CameraFor(const ros::Time& stamp, const cv::Size& size);
+  PointCloud2ConstPtr NearestCloud(const ros::Time& stamp) const;
   cv::Mat CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
   void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const cv::Mat& cloud, const cv::Size& size);
-  void Publish(const std_msgs::Header& header, const ImageView& view, const std::vector<ArucoTag>& tags);
+  void Publish(const std_msgs::Header& image_header, const ArucoTagArray& array, const ImageView& view,
+               const std::vector<ArucoTag>& tags);
   void PublishTf(const ArucoTagArray& array);
+  std::string ChildFramePrefix(const std::string& camera_frame) const;
 
   void OnReconfigure(ArucotagDetectorConfig& config, uint32_t level);
   void Diagnose(diagnostic_updater::DiagnosticStatusWrapper& status);
-  void Fail(const std::string& what);
+  // Throttled per kind (`key`), so a second, different problem is never hidden behind the first.
+  void Warn(const std::string& key, const std::string& what);
+  void Fail(const std::string& key, const std::string& what);
+  bool Due(const std::string& key);
 
   NodeletParameters params_;
   std::unique_ptr<Detector> detector_;
@@ -95,25 +123,22 @@ class DetectorNodelet : public nodelet::Nodelet {
   ros::NodeHandle nh_, pnh_;
   std::unique_ptr<image_transport::ImageTransport> it_;
 
-  // Inputs. The synchronizer reads images from image_filter_, which raw and decoded compressed
-  // images both feed, so one synchronizer serves both transports.
+  // Inputs.
   std::mutex connect_mutex_;
   std::atomic<bool> subscribed_{false};
   bool shutting_down_ = false;
   image_transport::Subscriber image_sub_;
-  ros::Subscriber compressed_sub_;
-  message_filters::PassThrough<Image> image_filter_;
-  message_filters::Subscriber<CameraInfo> info_sub_;
-  message_filters::Subscriber<PointCloud2> cloud_sub_;
-  std::shared_ptr<void> sync_;  // declared after the filters it holds connections to
-
-  // Fallback when the synchronizer is silent (no camera_info, no cloud, stamps that never match).
+  ros::Subscriber compressed_sub_, info_sub_, cloud_sub_;
   std::atomic<bool> reset_inputs_{true};
-  ros::Time waiting_since_, last_synced_, last_image_stamp_, last_processed_;
-  ImageConstPtr pending_;  // newest image the synchronizer has not matched yet, while falling back
+  Transport reading_ = Transport::kAuto;  // with ~image_transport auto: the transport chosen so far
+  ros::Time last_image_stamp_;
   CameraInfoConstPtr latest_info_;
-  size_t info_count_ = 0, cloud_count_ = 0;
-  bool falling_back_ = false;
+  std::unique_ptr<message_filters::Cache<PointCloud2>> clouds_;
+  std::deque<ImageConstPtr> waiting_for_info_;
+  bool info_wait_over_ = false;
+  ros::WallTimer info_wait_timer_;
+  std::unique_ptr<tf2_ros::MessageFilter<Image>> tf_filter_;  // images waiting for ~output_frame
+  std::map<const Image*, Clock::time_point> arrived_;          // arrival of images not yet processed
 
   // Outputs.
   ros::Publisher tags_pub_, markers_pub_;
@@ -121,6 +146,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
   std::unique_ptr<tf2_ros::TransformListener> tf_listener_;
+  std::map<std::string, ros::Time> last_tf_stamp_;  // per child frame: TF never gets one stamp twice
 
   boost::recursive_mutex reconfigure_mutex_;
   std::unique_ptr<dynamic_reconfigure::Server<ArucotagDetectorConfig>> reconfigure_;
@@ -128,10 +154,15 @@ class DetectorNodelet : public nodelet::Nodelet {
   // Diagnostics.
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   ros::Timer diagnostics_timer_;
-  size_t received_ = 0, processed_ = 0, skipped_ = 0;
+  struct Counts {
+    size_t received = 0, processed = 0, skipped = 0, with_cloud = 0, without_cloud = 0, tf_dropped = 0;
+    size_t waited_for_info = 0, without_info = 0, infos = 0, clouds = 0, stale_info = 0;
+    size_t zero_stamps = 0, repeated_stamps = 0, time_jumps = 0, tf_repeats = 0;
+  } counts_;
   std::deque<Clock::time_point> arrivals_;
-  std::deque<double> processing_ms_;
-  std::string last_error_;
+  std::deque<double> processing_ms_, latency_ms_;
+  std::map<std::string, ros::WallTime> last_report_;
+  std::string last_error_, last_warning_;
   Clock::time_point last_error_time_;
 };
 
@@ -141,9 +172,10 @@ DetectorNodelet::~DetectorNodelet() {
     shutting_down_ = true;
   }
   diagnostics_timer_.stop();
+  info_wait_timer_.stop();
   reconfigure_.reset();
   Unsubscribe();
-  sync_.reset();
+  tf_filter_.reset();
 }
 
 void DetectorNodelet::onInit() {
@@ -182,24 +214,15 @@ void DetectorNodelet::Start() {
     tf_buffer_ = std::make_unique<tf2_ros::Buffer>();
     tf_listener_ = std::make_unique<tf2_ros::TransformListener>(*tf_buffer_);
   }
-  if (params_.publish_tf) tf_broadcaster_ = std::make_unique<tf2_ros::TransformBroadcaster>();
-
-  const int q = params_.queue_size;
-  if (params_.use_point_cloud) {
-    using Approximate = policies::ApproximateTime<Image, CameraInfo, PointCloud2>;
-    using Exact = policies::ExactTime<Image, CameraInfo, PointCloud2>;
-    sync_ = params_.approximate_sync
-                ? MakeSynchronizer<Approximate>(q, this, &DetectorNodelet::OnSynced, image_filter_, info_sub_, cloud_sub_)
-                : MakeSynchronizer<Exact>(q, this, &DetectorNodelet::OnSynced, image_filter_, info_sub_, cloud_sub_);
-  } else {
-    using Approximate = policies::ApproximateTime<Image, CameraInfo>;
-    using Exact = policies::ExactTime<Image, CameraInfo>;
-    sync_ = params_.approximate_sync
-                ? MakeSynchronizer<Approximate>(q, this, &DetectorNodelet::OnSyncedNoCloud, image_filter_, info_sub_)
-                : MakeSynchronizer<Exact>(q, this, &DetectorNodelet::OnSyncedNoCloud, image_filter_, info_sub_);
+  if (!params_.output_frame.empty()) {
+    tf_filter_ = std::make_unique<tf2_ros::MessageFilter<Image>>(*tf_buffer_, params_.output_frame,
+                                                                 static_cast<uint32_t>(params_.queue_size), nh_);
+    tf_filter_->registerCallback(&DetectorNodelet::Process, this);
+    tf_filter_->registerFailureCallback(
+        [this](const ImageConstPtr& image, tf2_ros::FilterFailureReason reason) { OnTfFailure(image, reason); });
   }
-  info_sub_.registerCallback(&DetectorNodelet::OnInfo, this);
-  cloud_sub_.registerCallback(&DetectorNodelet::OnCloud, this);
+  if (params_.publish_tf) tf_broadcaster_ = std::make_unique<tf2_ros::TransformBroadcaster>();
+  clouds_ = std::make_unique<message_filters::Cache<PointCloud2>>(static_cast<unsigned>(params_.cloud_cache_size));
 
   reconfigure_ = std::make_unique<dynamic_reconfigure::Server<ArucotagDetectorConfig>>(reconfigure_mutex_, pnh_);
   // Show the values in use (the server would otherwise clamp to the cfg ranges without a word).
@@ -215,10 +238,13 @@ void DetectorNodelet::Start() {
   markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 1, connect, connect);
   overlay_pub_ = it_->advertise("overlay", 1, connect_image, connect_image);
   if (params_.publish_tf) Subscribe();  // TF has no subscriber count: it always counts as listening
-  NODELET_INFO("detecting %s markers on %s (%s)%s%s", params_.detector.dictionary.c_str(),
-               nh_.resolveName("image").c_str(), params_.compressed ? "compressed" : "raw",
-               params_.use_point_cloud ? " with points from " : "",
-               params_.use_point_cloud ? nh_.resolveName("points").c_str() : "");
+  const char* transport = params_.transport == Transport::kRaw          ? "raw"
+                          : params_.transport == Transport::kCompressed ? "compressed"
+                                                                        : "raw or compressed, whichever comes first";
+  NODELET_INFO("detecting %s markers on %s (%s)%s%s%s%s", params_.detector.dictionary.c_str(),
+               nh_.resolveName("image").c_str(), transport, params_.use_point_cloud ? " with points from " : "",
+               params_.use_point_cloud ? nh_.resolveName("points").c_str() : "",
+               params_.output_frame.empty() ? "" : ", poses in ", params_.output_frame.c_str());
 }
 
 void DetectorNodelet::ConnectCallback() {
@@ -236,14 +262,15 @@ void DetectorNodelet::ConnectCallback() {
 // Callers hold connect_mutex_ (or run before any publisher exists).
 void DetectorNodelet::Subscribe() {
   const uint32_t q = static_cast<uint32_t>(params_.queue_size);
-  if (params_.compressed) {
-    // No compressed_image_transport on Debian: take the plugin's topic and decode here.
-    compressed_sub_ = nh_.subscribe(nh_.resolveName("image") + "/compressed", q, &DetectorNodelet::OnCompressed, this);
-  } else {
+  if (params_.transport != Transport::kCompressed) {
     image_sub_ = it_->subscribe("image", q, &DetectorNodelet::OnImage, this, image_transport::TransportHints("raw"));
   }
-  info_sub_.subscribe(nh_, "camera_info", q);
-  if (params_.use_point_cloud) cloud_sub_.subscribe(nh_, "points", q);
+  if (params_.transport != Transport::kRaw) {
+    // No compressed_image_transport on Debian: take the plugin's topic and decode here.
+    compressed_sub_ = nh_.subscribe(nh_.resolveName("image") + "/compressed", q, &DetectorNodelet::OnCompressed, this);
+  }
+  info_sub_ = nh_.subscribe("camera_info", q, &DetectorNodelet::OnInfo, this);
+  if (params_.use_point_cloud) cloud_sub_ = nh_.subscribe("points", q, &DetectorNodelet::OnCloud, this);
   reset_inputs_ = true;
   subscribed_ = true;
 }
@@ -251,8 +278,8 @@ void DetectorNodelet::Subscribe() {
 void DetectorNodelet::Unsubscribe() {
   image_sub_.shutdown();
   compressed_sub_.shutdown();
-  info_sub_.unsubscribe();
-  cloud_sub_.unsubscribe();
+  info_sub_.shutdown();
+  cloud_sub_.shutdown();
   subscribed_ = false;
 }
 
@@ -261,85 +288,126 @@ void DetectorNodelet::OnCompressed(const CompressedImageConstPtr& compressed) {
   try {
     image = DecodeCompressed(*compressed);
   } catch (const std::exception& e) {
-    ++received_;
-    ++skipped_;
-    Fail(std::string("frame skipped: ") + e.what());
+    ++counts_.received;
+    ++counts_.skipped;
+    Fail("decode", std::string("frame skipped: ") + e.what());
     return;
   }
-  OnImage(image);
+  Admit(image, Transport::kCompressed);
 }
 
-void DetectorNodelet::OnImage(const ImageConstPtr& image) {
-  ++received_;
-  arrivals_.push_back(Clock::now());
-  if (arrivals_.size() > kStatsWindow) arrivals_.pop_front();
+void DetectorNodelet::OnImage(const ImageConstPtr& image) { Admit(image, Transport::kRaw); }
 
-  const ros::Time stamp = image->header.stamp;
-  // After (re)subscribing, and when time runs backwards (a bag restarted), start afresh.
-  if (reset_inputs_.exchange(false) || stamp < last_image_stamp_) {
-    waiting_since_ = stamp;
-    last_synced_ = last_processed_ = ros::Time();
-    info_count_ = cloud_count_ = 0;
-    pending_.reset();
+void DetectorNodelet::Admit(const ImageConstPtr& image, Transport from) {
+  const auto now = Clock::now();
+  ++counts_.received;
+  arrivals_.push_back(now);
+  if (arrivals_.size() > kStatsWindow) arrivals_.pop_front();
+  if (params_.transport == Transport::kAuto) KeepTransport(from);
+  CheckStamp(image->header.stamp);
+  arrived_[image.get()] = now;
+
+  if (!latest_info_ && !info_wait_over_ && params_.camera_info_wait > 0.0) {
+    // Drivers and bags often send camera_info after the first image: a single-frame bag would
+    // otherwise never get a pose. Once any camera_info has come (or the wait is over) nothing waits.
+    if (waiting_for_info_.empty()) {
+      info_wait_timer_ = nh_.createWallTimer(
+          ros::WallDuration(params_.camera_info_wait), [this](const ros::WallTimerEvent&) { StopWaitingForInfo(); },
+          true);
+    }
+    ++counts_.waited_for_info;
+    waiting_for_info_.push_back(image);
+    if (waiting_for_info_.size() >= static_cast<size_t>(params_.queue_size)) StopWaitingForInfo();
+    return;
+  }
+  Route(image);
+}
+
+void DetectorNodelet::CheckStamp(const ros::Time& stamp) {
+  if (reset_inputs_.exchange(false)) {
+    last_image_stamp_ = stamp;
+    return;
+  }
+  if (stamp.isZero()) {
+    ++counts_.zero_stamps;
+    Warn("zero stamp", "image stamp is zero (a driver without a clock?): tags keep stamp 0, TF is stamped with the "
+                       "time of arrival, and only clouds stamped within ~cloud_max_dt of 0 pair with it");
+  } else if (stamp < last_image_stamp_) {
+    ++counts_.time_jumps;
+    Warn("time jump", "image stamps went back " + std::to_string((last_image_stamp_ - stamp).toSec()) +
+                          " s (a looping bag or a restarted driver): cached clouds and TF history dropped, "
+                          "the latest camera_info kept");
+    clouds_ = std::make_unique<message_filters::Cache<PointCloud2>>(static_cast<unsigned>(params_.cloud_cache_size));
+    last_tf_stamp_.clear();
+  } else if (stamp == last_image_stamp_) {
+    ++counts_.repeated_stamps;
+    Warn("repeated stamp", "image stamp " + std::to_string(stamp.toSec()) +
+                               " repeats the previous image's: tags are published again, TF once per stamp");
   }
   last_image_stamp_ = stamp;
-  image_filter_.add(image);  // OnSynced runs from here when this image completes a set
-
-  const ros::Time since = last_synced_.isZero() ? waiting_since_ : last_synced_;
-  if ((stamp - since).toSec() < params_.input_timeout) {
-    falling_back_ = false;
-    pending_.reset();
-    return;
-  }
-  // The synchronizer has been silent for a while: never stall, use what there is. The image waits
-  // one frame first, because its cloud or camera_info may still be on the way (clouds are big).
-  falling_back_ = true;
-  const ImageConstPtr previous = pending_;
-  pending_ = image;
-  if (previous && previous->header.stamp < stamp) {
-    NODELET_WARN_THROTTLE(kThrottle, "%s", FallbackReason().c_str());
-    Process(previous, latest_info_, nullptr);
-  }
 }
 
-std::string DetectorNodelet::FallbackReason() const {
-  if (info_count_ == 0) {
-    return "no camera_info on " + nh_.resolveName("camera_info") +
-           ": publishing ids and corners without poses (pose_source NONE)";
+void DetectorNodelet::KeepTransport(Transport from) {
+  if (reading_ == from) return;
+  std::lock_guard<std::mutex> lock(connect_mutex_);
+  if (!subscribed_) return;
+  const std::string topic = nh_.resolveName("image");
+  if (from == Transport::kRaw) {
+    compressed_sub_.shutdown();
+    NODELET_INFO("reading raw images from %s (%s/compressed dropped)", topic.c_str(), topic.c_str());
+  } else {
+    image_sub_.shutdown();
+    NODELET_INFO("reading compressed images from %s/compressed (raw %s dropped)", topic.c_str(), topic.c_str());
   }
-  if (params_.use_point_cloud && cloud_count_ == 0) {
-    return "no point cloud on " + nh_.resolveName("points") + ": poses from PnP only";
-  }
-  return std::string("image, camera_info") + (params_.use_point_cloud ? " and points" : "") +
-         " do not synchronize (stamps too far apart" + (params_.approximate_sync ? "" : " for ~approximate_sync false") +
-         "): using the latest camera_info without a cloud";
+  reading_ = from;
 }
 
 void DetectorNodelet::OnInfo(const CameraInfoConstPtr& info) {
   latest_info_ = info;
-  ++info_count_;
+  ++counts_.infos;
+  if (!waiting_for_info_.empty()) StopWaitingForInfo();
 }
 
-void DetectorNodelet::OnCloud(const PointCloud2ConstPtr&) { ++cloud_count_; }
-
-void DetectorNodelet::OnSynced(const ImageConstPtr& image, const CameraInfoConstPtr& info,
-                               const PointCloud2ConstPtr& cloud) {
-  last_synced_ = image->header.stamp;
-  falling_back_ = false;
-  if (pending_ && pending_->header.stamp <= last_synced_) pending_.reset();
-  Process(image, info, cloud);
+void DetectorNodelet::OnCloud(const PointCloud2ConstPtr& cloud) {
+  ++counts_.clouds;
+  clouds_->add(cloud);
 }
 
-void DetectorNodelet::OnSyncedNoCloud(const ImageConstPtr& image, const CameraInfoConstPtr& info) {
-  OnSynced(image, info, nullptr);
+void DetectorNodelet::StopWaitingForInfo() {
+  info_wait_timer_.stop();
+  if (!latest_info_) {
+    info_wait_over_ = true;
+    Warn("no camera_info", "no camera_info on " + nh_.resolveName("camera_info") + " after " +
+                               std::to_string(params_.camera_info_wait) +
+                               " s (~camera_info_wait): publishing ids and corners without poses until one comes");
+  }
+  std::deque<ImageConstPtr> images;
+  images.swap(waiting_for_info_);
+  for (const auto& image : images) Route(image);
 }
 
-void DetectorNodelet::Process(const ImageConstPtr& image, const CameraInfoConstPtr& info,
-                              const PointCloud2ConstPtr& cloud) {
-  const ros::Time stamp = image->header.stamp;
-  // The fallback and the synchronizer can both see one image; TF must not get it twice.
-  if (!last_processed_.isZero() && stamp <= last_processed_) return;
+void DetectorNodelet::Route(const ImageConstPtr& image) {
+  if (tf_filter_) {
+    tf_filter_->add(image);  // Process runs once output_frame's transform at the image stamp is known
+  } else {
+    Process(image);
+  }
+}
+
+void DetectorNodelet::OnTfFailure(const ImageConstPtr& image, tf2_ros::FilterFailureReason reason) {
+  arrived_.erase(image.get());
+  ++counts_.tf_dropped;
+  Warn(std::string("tf ") + FailureName(reason),
+       "frame dropped: no transform " + params_.output_frame + " <- '" + image->header.frame_id + "' at " +
+           std::to_string(image->header.stamp.toSec()) + ": " + FailureName(reason));
+}
+
+void DetectorNodelet::Process(const ImageConstPtr& image) {
   const auto start = Clock::now();
+  const auto arrival = arrived_.find(image.get());
+  const Clock::time_point arrived = arrival == arrived_.end() ? start : arrival->second;
+  if (arrival != arrived_.end()) arrived_.erase(arrival);
+  const std_msgs::Header& header = image->header;
 
   ImageView view;
   std::vector<ArucoTag> tags;
@@ -351,30 +419,76 @@ void DetectorNodelet::Process(const ImageConstPtr& image, const CameraInfoConstP
     PreprocessFrame(view.pixels, grey, options);
     tags = Detect(grey, *detector_);
   } catch (const std::exception& e) {  // arucotag::Error, cv::Exception
-    ++skipped_;
-    Fail(std::string("frame skipped: ") + e.what());
+    ++counts_.skipped;
+    Fail("image " + image->encoding, std::string("frame skipped: ") + e.what());
     return;
   }
-  last_processed_ = stamp;
-  const cv::Size size = view.pixels.size();
-  const std::optional<CameraModel> camera = CameraFor(info, size);
-  const cv::Mat points = CloudFor(cloud, image->header, size);
-  for (auto& tag : tags) Measure(tag, camera, points, size);
-  Publish(image->header, view, tags);
+  std::optional<geometry_msgs::TransformStamped> to_output;
+  if (!params_.output_frame.empty() && params_.output_frame != header.frame_id) {
+    try {
+      // The MessageFilter let the image through, so the transform is there: no waiting.
+      to_output = tf_buffer_->lookupTransform(params_.output_frame, header.frame_id, header.stamp);
+    } catch (const tf2::TransformException& e) {
+      ++counts_.tf_dropped;
+      Warn("tf lookup", "frame dropped: no transform " + params_.output_frame + " <- " + header.frame_id + ": " +
+                            e.what());
+      return;
+    }
+  }
 
-  ++processed_;
-  processing_ms_.push_back(std::chrono::duration<double, std::milli>(Clock::now() - start).count());
+  const cv::Size size = view.pixels.size();
+  const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
+  cv::Mat points;
+  if (params_.use_point_cloud) {
+    points = CloudFor(NearestCloud(header.stamp), header, size);
+    ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
+  }
+  for (auto& tag : tags) Measure(tag, camera, points, size);
+  const ArucoTagArray array = ToMessage(tags, header, to_output ? &*to_output : nullptr);
+  Publish(header, array, view, tags);
+
+  ++counts_.processed;
+  const auto end = Clock::now();
+  processing_ms_.push_back(Ms(end - start));
+  latency_ms_.push_back(Ms(end - arrived));
   if (processing_ms_.size() > kStatsWindow) processing_ms_.pop_front();
+  if (latency_ms_.size() > kStatsWindow) latency_ms_.pop_front();
 }
 
-std::optional<CameraModel> DetectorNodelet::CameraFor(const CameraInfoConstPtr& info, const cv::Size& size) {
-  if (!info) return std::nullopt;
-  try {
-    return CameraModelFromInfo(*info, params_.rectified, size);
-  } catch (const std::exception& e) {
-    Fail(std::string("no poses: ") + e.what());
+std::optional<CameraModel> DetectorNodelet::CameraFor(const ros::Time& stamp, const cv::Size& size) {
+  if (!latest_info_) {
+    ++counts_.without_info;
     return std::nullopt;
   }
+  const double age = std::abs((stamp - latest_info_->header.stamp).toSec());
+  if (params_.camera_info_max_age > 0.0 && age > params_.camera_info_max_age) {
+    ++counts_.stale_info;
+    Warn("stale camera_info", "camera_info is stamped " + std::to_string(age) +
+                                  " s away from the image (~camera_info_max_age " +
+                                  std::to_string(params_.camera_info_max_age) + " s): using it anyway");
+  }
+  try {
+    return CameraModelFromInfo(*latest_info_, params_.rectified, size);
+  } catch (const std::exception& e) {
+    ++counts_.without_info;
+    Fail("camera_info", std::string("no poses: ") + e.what());
+    return std::nullopt;
+  }
+}
+
+PointCloud2ConstPtr DetectorNodelet::NearestCloud(const ros::Time& stamp) const {
+  const ros::Duration max_dt(params_.cloud_max_dt);
+  const ros::Time from = stamp.toSec() > max_dt.toSec() ? stamp - max_dt : ros::Time();
+  PointCloud2ConstPtr nearest;
+  double best = params_.cloud_max_dt;
+  for (const auto& cloud : clouds_->getInterval(from, stamp + max_dt)) {
+    const double dt = std::abs((cloud->header.stamp - stamp).toSec());
+    if (dt <= best) {  // on a tie the newer cloud (later in the cache) wins
+      best = dt;
+      nearest = cloud;
+    }
+  }
+  return nearest;
 }
 
 cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header,
@@ -383,22 +497,28 @@ cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_ms
   try {
     std::optional<geometry_msgs::TransformStamped> to_image;
     if (!cloud->header.frame_id.empty() && cloud->header.frame_id != image_header.frame_id) {
-      // Stereo drivers publish the cloud in a body frame; the core wants it in the image's.
-      to_image = tf_buffer_->lookupTransform(image_header.frame_id, cloud->header.frame_id, image_header.stamp,
-                                             ros::Duration(params_.tf_timeout));
+      // Stereo drivers publish the cloud in a body frame; the core wants it in the image's. No
+      // waiting: the transform is usually static, and a frame without its cloud still gets PnP.
+      to_image = tf_buffer_->lookupTransform(image_header.frame_id, cloud->header.frame_id, cloud->header.stamp);
     }
     cv::Mat points = CloudToMat(*cloud, to_image ? &to_image->transform : nullptr);
     if (points.size() != size) {
-      throw Error("point cloud is " + std::to_string(points.cols) + "x" + std::to_string(points.rows) +
-                  " but the image is " + std::to_string(size.width) + "x" + std::to_string(size.height) +
-                  "; an organized cloud must match the image pixel for pixel");
+      const int factor = points.cols > 0 ? size.width / points.cols : 0;
+      if (factor < 2 || points.cols * factor != size.width || points.rows * factor != size.height) {
+        throw Error("point cloud is " + std::to_string(points.cols) + "x" + std::to_string(points.rows) +
+                    " but the image is " + std::to_string(size.width) + "x" + std::to_string(size.height) +
+                    "; an organized cloud must match the image pixel for pixel or be it downscaled by a whole "
+                    "factor");
+      }
+      // A depth camera's cloud at a fraction of the image resolution: each point covers a block.
+      cv::resize(points, points, size, 0.0, 0.0, cv::INTER_NEAREST);
     }
     return points;
   } catch (const tf2::TransformException& e) {
-    NODELET_WARN_THROTTLE(kThrottle, "point cloud not used (poses from PnP): no transform %s <- %s at the image stamp: %s",
-                          image_header.frame_id.c_str(), cloud->header.frame_id.c_str(), e.what());
+    Warn("cloud tf", "point cloud not used (PnP alone): no transform " + image_header.frame_id + " <- " +
+                         cloud->header.frame_id + " at the cloud's stamp: " + e.what());
   } catch (const std::exception& e) {
-    Fail(std::string("point cloud not used (poses from PnP): ") + e.what());
+    Fail("cloud", std::string("point cloud not used (PnP alone): ") + e.what());
   }
   return {};
 }
@@ -409,41 +529,37 @@ void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& c
     if (camera) EstimatePoseFromPNP(*camera, tag);
     if (!cloud.empty()) EstimatePoseFromPointCloud(cloud, size, tag);
   } catch (const std::exception& e) {
-    Fail("tag " + std::to_string(tag.id) + ": " + e.what());
+    Fail("pose", "tag " + std::to_string(tag.id) + ": " + e.what());
   }
   ResolvePose(tag, params_.pose_source);
 }
 
-void DetectorNodelet::Publish(const std_msgs::Header& header, const ImageView& view,
+void DetectorNodelet::Publish(const std_msgs::Header& image_header, const ArucoTagArray& array, const ImageView& view,
                               const std::vector<ArucoTag>& tags) {
-  std::optional<geometry_msgs::TransformStamped> to_output;
-  if (!params_.output_frame.empty() && params_.output_frame != header.frame_id) {
-    try {
-      to_output = tf_buffer_->lookupTransform(params_.output_frame, header.frame_id, header.stamp,
-                                              ros::Duration(params_.tf_timeout));
-    } catch (const tf2::TransformException& e) {
-      NODELET_WARN_THROTTLE(kThrottle, "poses stay in %s: no transform to ~output_frame %s at the image stamp: %s",
-                            header.frame_id.c_str(), params_.output_frame.c_str(), e.what());
-    }
-  }
-  const auto array = boost::make_shared<ArucoTagArray>(ToMessage(tags, header, to_output ? &*to_output : nullptr));
-  tags_pub_.publish(array);
-  if (params_.publish_tf) PublishTf(*array);
-  if (markers_pub_.getNumSubscribers() > 0) markers_pub_.publish(ToMarkers(*array));
+  tags_pub_.publish(boost::make_shared<ArucoTagArray>(array));
+  if (params_.publish_tf) PublishTf(array);
+  if (markers_pub_.getNumSubscribers() > 0) markers_pub_.publish(ToMarkers(array));
   if (overlay_pub_.getNumSubscribers() > 0) {
     try {
       cv::Mat overlay = ToBgrCopy(view);
       DrawDetections(overlay, tags);
-      overlay_pub_.publish(ToImageMessage(overlay, "bgr8", header));
+      overlay_pub_.publish(ToImageMessage(overlay, "bgr8", image_header));
     } catch (const std::exception& e) {
-      Fail(std::string("overlay: ") + e.what());
+      Fail("overlay", std::string("overlay: ") + e.what());
     }
   }
 }
 
+std::string DetectorNodelet::ChildFramePrefix(const std::string& camera_frame) const {
+  if (!params_.frame_prefix.empty()) return params_.frame_prefix;
+  // tf2 refuses frame ids with a leading slash (tf1 style); keep the name, drop the slash.
+  const size_t begin = camera_frame.find_first_not_of('/');
+  return begin == std::string::npos ? std::string() : camera_frame.substr(begin) + "/aruco_";
+}
+
 void DetectorNodelet::PublishTf(const ArucoTagArray& array) {
   if (array.header.frame_id.empty()) {
-    NODELET_WARN_THROTTLE(kThrottle, "image has no frame_id: no TF published");
+    Warn("tf no frame_id", "image has no frame_id: no TF published");
     return;
   }
   // A post shows one id on several faces; TF gets only the best-measured face per id.
@@ -453,9 +569,19 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array) {
     const ArucoTagMsg*& chosen = best[tag.id];
     if (!chosen || BetterMeasured(tag, *chosen)) chosen = &tag;
   }
+  std_msgs::Header header = array.header;
+  if (header.stamp.isZero()) header.stamp = ros::Time::now();
+  const std::string prefix = ChildFramePrefix(array.header.frame_id);
   std::vector<geometry_msgs::TransformStamped> transforms;
   for (const auto& [id, tag] : best) {
-    transforms.push_back(ToTransform(*tag, array.header, params_.frame_prefix + std::to_string(id)));
+    const std::string child = prefix + std::to_string(id);
+    ros::Time& last = last_tf_stamp_[child];
+    if (last == header.stamp) {  // a repeated image stamp: listeners would reject it as TF_REPEATED_DATA
+      ++counts_.tf_repeats;
+      continue;
+    }
+    last = header.stamp;
+    transforms.push_back(ToTransform(*tag, header, child));
   }
   if (!transforms.empty()) tf_broadcaster_->sendTransform(transforms);
 }
@@ -475,10 +601,23 @@ void DetectorNodelet::OnReconfigure(ArucotagDetectorConfig& config, uint32_t) {
   }
 }
 
-void DetectorNodelet::Fail(const std::string& what) {
-  NODELET_ERROR_THROTTLE(kThrottle, "%s", what.c_str());
+bool DetectorNodelet::Due(const std::string& key) {
+  const ros::WallTime now = ros::WallTime::now();
+  auto it = last_report_.find(key);
+  if (it != last_report_.end() && (now - it->second).toSec() < kThrottle) return false;
+  last_report_[key] = now;
+  return true;
+}
+
+void DetectorNodelet::Warn(const std::string& key, const std::string& what) {
+  last_warning_ = what;
+  if (Due(key)) NODELET_WARN("%s", what.c_str());
+}
+
+void DetectorNodelet::Fail(const std::string& key, const std::string& what) {
   last_error_ = what;
   last_error_time_ = Clock::now();
+  if (Due(key)) NODELET_ERROR("%s", what.c_str());
 }
 
 void DetectorNodelet::Diagnose(diagnostic_updater::DiagnosticStatusWrapper& status) {
@@ -498,23 +637,37 @@ void DetectorNodelet::Diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat
     status.summary(DiagnosticStatus::ERROR, "inert: " + inert_reason_);
   } else if (recent_error) {
     status.summary(DiagnosticStatus::WARN, last_error_);
-  } else if (falling_back_) {
-    status.summary(DiagnosticStatus::WARN, FallbackReason());
   } else if (!subscribed_) {
     status.summary(DiagnosticStatus::OK, "idle: nobody listens");
+  } else if (counts_.received > 0 && !latest_info_) {
+    status.summary(DiagnosticStatus::WARN, "no camera_info on " + nh_.resolveName("camera_info") +
+                                               ": ids and corners without poses");
   } else {
     status.summary(DiagnosticStatus::OK, "ok");
   }
+  const Counts& c = counts_;
   status.add("input rate (Hz)", rate);
   status.add("processing time mean (ms)", mean_ms);
   status.add("processing time max (ms)", max_ms);
-  status.add("frames received", received_);
-  status.add("frames processed", processed_);
-  status.add("frames dropped", received_ - std::min(received_, processed_));
-  status.add("frames skipped (bad input)", skipped_);
-  status.add("camera_info received", info_count_);
-  status.add("point clouds received", cloud_count_);
+  status.add("latency from arrival median (ms)", Quantile(latency_ms_, 0.5));
+  status.add("latency from arrival p99 (ms)", Quantile(latency_ms_, 0.99));
+  status.add("frames received", c.received);
+  status.add("frames processed", c.processed);
+  status.add("frames skipped (bad input)", c.skipped);
+  status.add("frames dropped (no output_frame transform)", c.tf_dropped);
+  status.add("frames with a cloud", c.with_cloud);
+  status.add("frames without a cloud", c.without_cloud);
+  status.add("frames without camera_info", c.without_info);
+  status.add("frames held for the first camera_info", c.waited_for_info);
+  status.add("camera_info received", c.infos);
+  status.add("camera_info stale (> ~camera_info_max_age)", c.stale_info);
+  status.add("point clouds received", c.clouds);
+  status.add("zero stamps", c.zero_stamps);
+  status.add("repeated stamps", c.repeated_stamps);
+  status.add("stamps going back (loops)", c.time_jumps);
+  status.add("TF not resent for a repeated stamp", c.tf_repeats);
   status.add("last error", last_error_.empty() ? "none" : last_error_);
+  status.add("last warning", last_warning_.empty() ? "none" : last_warning_);
 }
 
 }  // namespace arucotag

@@ -69,8 +69,8 @@ const Field<PreprocessOptions, bool> kPreprocessBools[] = {
 // Private parameters read outside the tables above.
 const char* const kOtherNames[] = {
     "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
-    "image_transport", "use_point_cloud", "approximate_sync", "queue_size", "pose_source", "publish_tf",
-    "output_frame", "frame_prefix", "rectified", "input_timeout", "tf_timeout",
+    "image_transport", "use_point_cloud", "queue_size", "pose_source", "publish_tf", "output_frame",
+    "frame_prefix", "rectified", "camera_info_max_age", "camera_info_wait", "cloud_max_dt", "cloud_cache_size",
     "diagnostic_period",  // diagnostic_updater's own
 };
 
@@ -191,15 +191,22 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   Require(std::isfinite(p.preprocess.unsharp_sigma) && p.preprocess.unsharp_sigma > 0.0, "unsharp_sigma",
           "must be > 0 px");
 
-  std::string transport = "raw";
+  std::string transport = "auto";
   Get(pnh, "image_transport", transport);
-  Require(transport == "raw" || transport == "compressed", "image_transport",
-          "must be raw or compressed (Debian has no compressed_image_transport plugin; the nodelet decodes "
-          "compressed itself), got '" + transport + "'");
-  p.compressed = transport == "compressed";
+  using Transport = NodeletParameters::Transport;
+  if (transport == "auto") {
+    p.transport = Transport::kAuto;
+  } else if (transport == "raw") {
+    p.transport = Transport::kRaw;
+  } else if (transport == "compressed") {
+    p.transport = Transport::kCompressed;
+  } else {
+    Require(false, "image_transport",
+            "must be auto, raw or compressed (the nodelet decodes compressed jpeg/png itself), got '" + transport +
+                "'");
+  }
 
   Get(pnh, "use_point_cloud", p.use_point_cloud);
-  Get(pnh, "approximate_sync", p.approximate_sync);
   Get(pnh, "queue_size", p.queue_size);
   Require(p.queue_size >= 1, "queue_size", "must be >= 1");
 
@@ -218,12 +225,16 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   Get(pnh, "publish_tf", p.publish_tf);
   Get(pnh, "output_frame", p.output_frame);
   Get(pnh, "frame_prefix", p.frame_prefix);
-  Require(!p.frame_prefix.empty(), "frame_prefix", "must not be empty (child frames would be bare ids)");
   Get(pnh, "rectified", p.rectified);
-  Get(pnh, "input_timeout", p.input_timeout);
-  Require(std::isfinite(p.input_timeout) && p.input_timeout > 0.0, "input_timeout", "must be > 0 s");
-  Get(pnh, "tf_timeout", p.tf_timeout);
-  Require(std::isfinite(p.tf_timeout) && p.tf_timeout >= 0.0, "tf_timeout", "must be >= 0 s");
+  const auto seconds = [&pnh](const char* name, double& value) {
+    Get(pnh, name, value);
+    Require(std::isfinite(value) && value >= 0.0, name, "must be >= 0 s, got " + std::to_string(value));
+  };
+  seconds("camera_info_max_age", p.camera_info_max_age);
+  seconds("camera_info_wait", p.camera_info_wait);
+  seconds("cloud_max_dt", p.cloud_max_dt);
+  Get(pnh, "cloud_cache_size", p.cloud_cache_size);
+  Require(p.cloud_cache_size >= 1, "cloud_cache_size", "must be >= 1");
   return p;
 }
 

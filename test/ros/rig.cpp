@@ -70,6 +70,9 @@ ros::Time Rig::Publish(const Scene& scene, const Channels& channels) {
     body_cloud_pub_.publish(CloudMessage(scene.cloud, stamp, kBodyFrame, BodyFromOpticalRotation(),
                                          BodyFromOpticalTranslation()));
   }
+  // Each image is processed the moment it arrives with the clouds already there; a 5 MB cloud on
+  // its own connection can overtake a small image, so give it a head start.
+  if (channels.cloud || channels.body_cloud) ros::WallDuration(0.03).sleep();
   if (!channels.compressed.empty()) {
     sensor_msgs::CompressedImage compressed;
     compressed.header.stamp = stamp;

@@ -21,6 +21,8 @@ namespace arucotag::test {
 namespace {
 
 using TagArray = arucotag::ArucoTagArray;
+// The shipped config leaves ~frame_prefix empty: child frames carry the camera's frame_id.
+const std::string kFusedChild = std::string(kOpticalFrame) + "/aruco_7";
 using TagMsg = arucotag::ArucoTag;
 
 // Every /tf transform by child frame and stamp: TF must carry one transform per child and frame.
@@ -153,7 +155,7 @@ TEST(Detector, TfAtImageStampIsTheTagPose) {
   const TagMsg* tag = Only(msg, 7);
   ASSERT_TRUE(tag);
   geometry_msgs::TransformStamped tf;
-  ASSERT_NO_THROW(tf = world->tf_buffer.lookupTransform(kOpticalFrame, "aruco_7", msg->header.stamp,
+  ASSERT_NO_THROW(tf = world->tf_buffer.lookupTransform(kOpticalFrame, kFusedChild, msg->header.stamp,
                                                          ros::Duration(3.0)));
   EXPECT_EQ(tf.header.stamp, msg->header.stamp) << "TF must carry the image stamp, never now()";
   ExpectSamePose(PoseOf(tf), tag->pose);
@@ -237,9 +239,9 @@ TEST(Detector, SameIdTwiceGivesTwoTagsAndOneTf) {
         cv::norm(Position(tag.pose.position) - near_face.tvec) < 0.1 ? near_face : far_face;
     EXPECT_TRUE(PoseMatches(tag.pose, truth));
   }
-  ASSERT_NO_THROW(world->tf_buffer.lookupTransform(kOpticalFrame, "aruco_7", msg->header.stamp, ros::Duration(3.0)));
+  ASSERT_NO_THROW(world->tf_buffer.lookupTransform(kOpticalFrame, kFusedChild, msg->header.stamp, ros::Duration(3.0)));
   ros::WallDuration(0.3).sleep();  // let a second transform arrive, if one were sent
-  const auto sent = world->tf_recorder.Get("aruco_7", msg->header.stamp);
+  const auto sent = world->tf_recorder.Get(kFusedChild, msg->header.stamp);
   ASSERT_EQ(sent.size(), 1u) << "one child frame, one transform per stamp";
   ExpectSamePose(PoseOf(sent[0]), better.pose);
 }
@@ -286,7 +288,9 @@ TEST(Detector, CloudInBodyFrameJoinsThroughStaticTf) {
 
 TEST(Detector, MissingCameraInfoStillGivesIds) {
   const Scene& scene = MainScene();
-  const auto msg = world->rig.PublishUntil(scene, world->noinfo, WithCloud());
+  // No camera_info, no cloud: ids and corners, no pose, nothing made up.
+  ros::WallDuration(0.3).sleep();  // no cloud of an earlier test within ~cloud_max_dt
+  const auto msg = world->rig.PublishUntil(scene, world->noinfo);
   const TagMsg* tag = Only(msg, 7);
   ASSERT_TRUE(tag) << "the nodelet must not stall without camera_info";
   EXPECT_EQ(tag->pose_source, TagMsg::NONE);
@@ -294,6 +298,16 @@ TEST(Detector, MissingCameraInfoStillGivesIds) {
   EXPECT_TRUE(std::isnan(tag->distance));
   EXPECT_TRUE(std::isnan(tag->reprojection_error));
   EXPECT_EQ(tag->cloud_points, 0);
+
+  // No camera_info, a cloud: the cloud alone places the tag (no PnP, so no reprojection error).
+  const TagMsg* located = Only(world->rig.PublishUntil(scene, world->noinfo, WithCloud()), 7);
+  ASSERT_TRUE(located);
+  EXPECT_EQ(located->pose_source, TagMsg::POINT_CLOUD);
+  const double range = cv::norm(scene.markers[0].tvec);
+  EXPECT_NEAR(located->distance, range, 0.01 * range);
+  EXPECT_LT(cv::norm(Position(located->pose.position) - scene.markers[0].tvec), 0.01 * range);
+  EXPECT_TRUE(std::isnan(located->reprojection_error));
+  EXPECT_GT(located->cloud_points, 200);
 }
 
 TEST(Detector, CompressedJpegAndPng) {
@@ -460,9 +474,10 @@ TEST(Detector, BadInputLeavesManagerAliveAndNextFrameDetected) {
   // Good image, cloud of the wrong size: the cloud is ignored, PnP still answers.
   const ros::Time wrong_cloud = ros::Time::now();
   rig.info_pub().publish(Rig::InfoMessage(scene.camera, wrong_cloud));
-  cv::Mat small;
-  cv::resize(scene.cloud, small, cv::Size(320, 240), 0, 0, cv::INTER_NEAREST);
+  cv::Mat small;  // 640x480 is not a whole multiple of 400x300 (a half-size cloud would be used)
+  cv::resize(scene.cloud, small, cv::Size(400, 300), 0, 0, cv::INTER_NEAREST);
   rig.cloud_pub().publish(Rig::CloudMessage(small, wrong_cloud, kOpticalFrame));
+  ros::WallDuration(0.03).sleep();
   rig.image_pub().publish(Rig::ImageMessage(scene.image, wrong_cloud));
   const TagMsg* pnp_only = Only(world->fused.Wait(wrong_cloud, 5.0), 7);
   ASSERT_TRUE(pnp_only);
@@ -475,6 +490,7 @@ TEST(Detector, BadInputLeavesManagerAliveAndNextFrameDetected) {
   rig.info_pub().publish(Rig::InfoMessage(scene.camera, nan_cloud));
   rig.cloud_pub().publish(Rig::CloudMessage(cv::Mat(scene.cloud.size(), CV_32FC3, cv::Scalar::all(NAN)), nan_cloud,
                                             kOpticalFrame));
+  ros::WallDuration(0.03).sleep();
   rig.image_pub().publish(Rig::ImageMessage(scene.image, nan_cloud));
   const TagMsg* no_depth = Only(world->fused.Wait(nan_cloud, 5.0), 7);
   ASSERT_TRUE(no_depth);

@@ -17,17 +17,22 @@ namespace arucotag {
 struct NodeletParameters {
   DetectorConfig detector;        ///< dictionary, tag_size(s), id lists, cv::aruco parameters
   PreprocessOptions preprocess;   ///< equalize, clahe_*, unsharp_*
-  bool compressed = false;        ///< ~image_transport: compressed (else raw)
+  /// ~image_transport: which of <image> and <image>/compressed to read; auto takes both until the
+  /// first message arrives and keeps the transport it came on.
+  enum class Transport { kAuto, kRaw, kCompressed } transport = Transport::kAuto;
   bool use_point_cloud = false;
-  bool approximate_sync = true;
   int queue_size = 10;
   PoseSource pose_source = PoseSource::kFused;
   bool publish_tf = true;
   std::string output_frame;        ///< empty: poses stay in the image's frame
-  std::string frame_prefix = "aruco_";
+  /// TF child frame = frame_prefix + id; empty (the default): "<image frame_id>/aruco_", so two
+  /// cameras never publish the same child frame.
+  std::string frame_prefix;
   bool rectified = false;          ///< camera model from P (rectified image) instead of K + D
-  double input_timeout = 1.0;      ///< s of image stamps without a synchronized set before images are used alone
-  double tf_timeout = 0.05;        ///< s to wait for a transform at the image stamp
+  double camera_info_max_age = 0.0;  ///< s between image and camera_info stamps before a warning; 0: any age
+  double camera_info_wait = 1.0;     ///< s images wait for the first camera_info (only before one has come)
+  double cloud_max_dt = 0.1;         ///< s, largest stamp difference of an image and the cloud it is paired with
+  int cloud_cache_size = 4;          ///< clouds kept for pairing (they are large)
 };
 
 /// Reads and validates the private parameters. Throws arucotag::Error naming the offending
