@@ -31,7 +31,7 @@ if(CATKIN_ENABLE_TESTING)
   find_package(rostest REQUIRED)
   # Each rostest starts its own master and manager; the test node publishes frames rendered by
   # arucotag_sim (ROS-free) and checks what the real nodelet publishes.
-  foreach(name detector lifecycle)
+  foreach(name detector lifecycle cameras)
     add_rostest_gtest(test_ros_${name} test/ros/${name}.test test/ros/test_${name}.cpp test/ros/rig.cpp
       test/ros/flip_search.cpp)
     target_include_directories(test_ros_${name} PRIVATE ${ARUCOTAG_ROS_INCLUDES})
