@@ -239,8 +239,8 @@ sensor_msgs::ImagePtr DecodeCompressedImage(const sensor_msgs::CompressedImage& 
   const cv::Size2l size = FileImageSize(compressed.data, what);
   if (size.width <= 0 || size.height <= 0 ||
       static_cast<std::uint64_t>(size.width) * static_cast<std::uint64_t>(size.height) > max_pixels) {
-    throw Error(what + " claims " + std::to_string(size.width) + "x" + std::to_string(size.height) +
-                " pixels (decoded only from 1 to " + std::to_string(max_pixels) + ")");
+    throw Error(what + " claims a " + std::to_string(size.width) + "x" + std::to_string(size.height) +
+                " image; only 1 to " + std::to_string(max_pixels) + " pixels are decoded");
   }
   cv_bridge::CvImagePtr decoded;
   try {

@@ -3,6 +3,7 @@
 // master: only messages and the functions of image_input.hpp.
 #include <algorithm>
 #include <cstdint>
+#include <cstdio>
 #include <functional>
 #include <map>
 #include <string>
