@@ -20,7 +20,10 @@ namespace enc = sensor_msgs::image_encodings;
 
 constexpr int kNoConversion = -1;
 
-// How one encoding reaches the detector and the overlay.
+// How one encoding reaches the detector and the overlay. The conversions are cv::cvtColor's codes
+// rather than cv_bridge::cvtColor: cv_bridge scales 16 bits to 8 by 1/257 (a full-scale 12-bit red
+// bayer_rggb16 comes out as bgr8 (0, 0, 16)), refuses 8UC1 to bgr8, and Debian's does not know
+// yuv422_yuy2; one table serves both outputs.
 struct Encoding {
   const char* name;
   int type;            // OpenCV type of the message's pixels
