@@ -6,6 +6,7 @@ set(ARUCOTAG_ROS_INCLUDES ${CATKIN_DEVEL_PREFIX}/include)
 add_library(arucotag_nodelet
   src/nodelet/conversions.cpp
   src/nodelet/detector_nodelet.cpp
+  src/nodelet/image_input.cpp
   src/nodelet/parameters.cpp)
 target_include_directories(arucotag_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
 target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
@@ -27,6 +28,13 @@ if(CATKIN_ENABLE_TESTING)
   # launch/*.launch parse, and every package they name is installed and declared in package.xml.
   find_package(roslaunch REQUIRED)
   roslaunch_add_file_check(launch)
+
+  # Image encodings from real photos through image_input.cpp and the core: gtest, no master. It
+  # compiles the one file it tests rather than linking the plugin library.
+  catkin_add_gtest(test_ros_encodings test/ros/test_encodings.cpp src/nodelet/image_input.cpp)
+  target_include_directories(test_ros_encodings SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(test_ros_encodings arucotag_core ${catkin_LIBRARIES} ${GTEST_MAIN_LIBRARIES})
+  target_compile_definitions(test_ros_encodings PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
 
   find_package(rostest REQUIRED)
   # Each rostest starts its own master and manager; the test node publishes frames rendered by
