@@ -24,14 +24,16 @@ struct LabelPlacement {
 };
 
 /// Lays out the labels of `tags` for an image of `image_size`; returns one placement per tag, in
-/// the order of `tags`. Labels are placed top to bottom (by tag centre). Each label starts at its
-/// default spot; where that spot would overlap a label already placed, leave the
-/// image or cover a tag, candidate spots around the tag are tried (above, below, beside, slid
-/// sideways, then rings further out, and as a last resort anywhere in the image), preferring the
-/// nearest spot that overlaps no label, covers no tag's quad (its own included) and keeps clear of
-/// the leader lines already drawn. Labels never overlap each other unless the image has no room
-/// left; a tag's quad is only covered when no free spot exists. Text size and padding grow with the
-/// image (readable from 320x240 to 4K, never smaller than a legible minimum). Deterministic.
+/// the order of `tags`. Labels are placed top to bottom (by tag centre), each at the cheapest of its
+/// default spot and candidate spots around its tag (above and below slid sideways, beside it, then
+/// rings further out, and when none is free of other labels, anywhere in the image); then a few
+/// passes move each label to its cheapest spot given all the others. A spot overlapping another
+/// label loses to any that does not; beyond that, covering a tag's quad (its own included) or
+/// running the leader over another tag costs the image's diagonal, a leader crossing a label or
+/// another leader a quarter of it, and then the distance from the default spot counts. So labels
+/// never overlap each other while the image has room for all of them, stay inside it whenever a
+/// label fits in it, and cover a tag only where no free spot exists. Text size and padding grow with the image
+/// (readable from 320x240 to 4K, never smaller than a legible minimum). Deterministic.
 /// Throws arucotag::Error on an empty size.
 std::vector<LabelPlacement> LayoutLabels(cv::Size image_size, const std::vector<ArucoTag>& tags);
 

@@ -1,10 +1,13 @@
 #include <arucotag/draw.hpp>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <limits>
 #include <numeric>
+#include <string>
+#include <utility>
 
 #include <opencv2/imgproc.hpp>
 
@@ -50,6 +53,8 @@ std::string LabelText(const ArucoTag& tag) {
 
 cv::Point2f Centre(const cv::Rect& r) { return {r.x + 0.5f * r.width, r.y + 0.5f * r.height}; }
 
+double Distance(const cv::Rect& a, const cv::Rect& b) { return cv::norm(Centre(a) - Centre(b)); }
+
 /// Nearest point to p on the closed polyline through the quad's corners.
 cv::Point2f NearestOnOutline(const std::array<cv::Point2f, 4>& quad, cv::Point2f p) {
   cv::Point2f best = quad[0];
@@ -88,7 +93,7 @@ Obstacle MakeObstacle(const ArucoTag& tag, float grow) {
     const cv::Point2f d = c - centre;
     const float n = std::hypot(d.x, d.y);
     // sqrt(2) * grow along the diagonal moves a square's sides out by grow.
-    c += n > 0.0f ? d * (1.4143f * grow / n) : cv::Point2f(grow, grow);
+    c += n > 0.0f ? d * (std::sqrt(2.0f) * grow / n) : cv::Point2f(grow, grow);
   }
   Obstacle o;
   cv::convexHull(corners, o.hull);
@@ -210,8 +215,6 @@ class Layout {
     return best;
   }
 
- private:
-
   cv::Rect Clamp(cv::Rect r) const {
     r.x = std::max(0, std::min(r.x, size_.width - r.width));
     r.y = std::max(0, std::min(r.y, size_.height - r.height));
@@ -226,17 +229,17 @@ class Layout {
 
   /// The best of `spots` for tag i. Every cost is at least the spot's distance from `preferred`, so
   /// trying spots nearest first can stop at the first spot further away than the best cost so far.
+  /// No spots at all give a candidate that loses to any other.
   Candidate Best(size_t i, std::vector<cv::Rect> spots, const cv::Rect& preferred) const {
-    const auto distance = [&](const cv::Rect& r) { return cv::norm(Centre(r) - Centre(preferred)); };
-    std::stable_sort(spots.begin(), spots.end(),
-                     [&](const cv::Rect& a, const cv::Rect& b) { return distance(a) < distance(b); });
+    std::stable_sort(spots.begin(), spots.end(), [&](const cv::Rect& a, const cv::Rect& b) {
+      return Distance(a, preferred) < Distance(b, preferred);
+    });
     Candidate best;
-    bool first = true;
+    best.label_overlap = std::numeric_limits<double>::infinity();
     for (const auto& spot : spots) {
-      if (!first && best.label_overlap == 0.0 && distance(spot) > best.cost) break;
+      if (best.label_overlap == 0.0 && Distance(spot, preferred) > best.cost) break;
       const Candidate c = Evaluate(i, spot, preferred);
-      if (first || c < best) best = c;
-      first = false;
+      if (c < best) best = c;
     }
     return best;
   }
@@ -267,14 +270,17 @@ class Layout {
     }
     constexpr size_t kFullImageTries = 32;
     if (least > 0 && spots.size() > kFullImageTries) {
-      const auto distance = [&](const cv::Rect& r) { return cv::norm(Centre(r) - Centre(preferred)); };
       std::nth_element(spots.begin(), spots.begin() + kFullImageTries, spots.end(),
-                       [&](const cv::Rect& a, const cv::Rect& b) { return distance(a) < distance(b); });
+                       [&](const cv::Rect& a, const cv::Rect& b) {
+                         return Distance(a, preferred) < Distance(b, preferred);
+                       });
       spots.resize(kFullImageTries);
     }
     return spots;
   }
 
+  /// Tag i's label at `box`, with its leader when `box` is not the default spot, and its cost
+  /// against the tags and every other placed label.
   Candidate Evaluate(size_t i, const cv::Rect& box, const cv::Rect& preferred) const {
     Candidate c;
     c.placement.box = box;
@@ -299,13 +305,11 @@ class Layout {
     double covered = 0.0;
     for (size_t k = 0; k < obstacles_.size(); ++k) {
       covered += OverlapArea(box, obstacles_[k]);
-      if (k != i && moved && SegmentHitsObstacle(obstacles_[k], a, b)) {
-        ++conflicts;
-      }
+      if (k != i && moved && SegmentHitsObstacle(obstacles_[k], a, b)) conflicts += 4;
     }
-    // A label covering any tag loses to every clear spot in the image; a label on a leader line, a
-    // leader over another tag or label, or two leaders crossing cost a quarter of the image's
-    // diagonal each; beyond that the nearest spot wins.
+    // A label covering any tag, or a leader over another tag, loses to every clear spot in the
+    // image; a label on a leader line, a leader under another label or two leaders crossing cost
+    // a quarter of the image's diagonal each; beyond that the nearest spot wins.
     const double distance = cv::norm(Centre(box) - Centre(preferred));
     c.cost = (covered > 0.0 ? diagonal_ + covered : 0.0) + 0.25 * diagonal_ * conflicts + distance;
     return c;

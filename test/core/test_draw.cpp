@@ -285,6 +285,19 @@ TEST(Draw, MoreLabelsThanRoomStayInsideTheImage) {
   EXPECT_NO_THROW(DrawDetections(image, tags));
 }
 
+TEST(Draw, FrameNarrowerThanALabelClipsIt) {
+  ArucoTag tag;
+  tag.id = 123456;
+  tag.corners = {{{10, 10}, {20, 10}, {20, 20}, {10, 20}}};
+  const cv::Size size(40, 30);
+  const auto labels = LayoutLabels(size, {tag});
+  ASSERT_EQ(labels.size(), 1u);
+  EXPECT_FALSE(labels[0].box.empty());
+  EXPECT_EQ(labels[0].box & cv::Rect(cv::Point(), size), labels[0].box);
+  cv::Mat image(size, CV_8UC3, cv::Scalar::all(128));
+  EXPECT_NO_THROW(DrawDetections(image, {tag}));
+}
+
 TEST(Draw, LayoutRejectsAnEmptySize) { EXPECT_THROW(LayoutLabels({0, 480}, {}), Error); }
 
 }  // namespace
