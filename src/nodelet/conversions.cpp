@@ -7,10 +7,8 @@
 
 #include <boost/make_shared.hpp>
 #include <opencv2/calib3d.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sensor_msgs/PointField.h>
-#include <sensor_msgs/image_encodings.h>
 #include <tf2/LinearMath/Matrix3x3.h>
 #include <tf2/LinearMath/Quaternion.h>
 #include <tf2_geometry_msgs/tf2_geometry_msgs.h>
@@ -110,61 +108,6 @@ CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_pr
   return camera;
 }
 
-ImageView ViewImage(const sensor_msgs::Image& image) {
-  namespace enc = sensor_msgs::image_encodings;
-  if (image.width == 0 || image.height == 0 || image.data.empty()) {
-    throw Error("empty image (" + Size(image.width, image.height) + ", " + std::to_string(image.data.size()) +
-                " bytes)");
-  }
-  ImageView view;
-  view.format = PixelFormatFromEncoding(image.encoding);
-  const int channels = enc::numChannels(image.encoding);
-  const int depth = enc::bitDepth(image.encoding) == 16 ? CV_16U : CV_8U;
-  const size_t row_bytes = static_cast<size_t>(image.width) * channels * (depth == CV_16U ? 2 : 1);
-  if (image.step < row_bytes || image.data.size() < static_cast<size_t>(image.step) * image.height) {
-    throw Error("malformed image: " + Size(image.width, image.height) + " " + image.encoding + " with step " +
-                std::to_string(image.step) + " and " + std::to_string(image.data.size()) + " bytes");
-  }
-  if (depth == CV_16U && image.is_bigendian) {
-    throw Error("big-endian 16-bit images are not supported");
-  }
-  view.pixels = cv::Mat(static_cast<int>(image.height), static_cast<int>(image.width), CV_MAKETYPE(depth, channels),
-                        const_cast<uint8_t*>(image.data.data()), image.step);
-  return view;
-}
-
-cv::Mat ToBgrCopy(const ImageView& view) {
-  cv::Mat bgr;
-  switch (view.format) {
-    case PixelFormat::kRgb8:
-      cv::cvtColor(view.pixels, bgr, cv::COLOR_RGB2BGR);
-      break;
-    case PixelFormat::kBgra8:
-      cv::cvtColor(view.pixels, bgr, cv::COLOR_BGRA2BGR);
-      break;
-    case PixelFormat::kRgba8:
-      cv::cvtColor(view.pixels, bgr, cv::COLOR_RGBA2BGR);
-      break;
-    case PixelFormat::kMono8:
-      cv::cvtColor(view.pixels, bgr, cv::COLOR_GRAY2BGR);
-      break;
-    case PixelFormat::kMono16: {
-      // The core's own 16-to-8-bit scaling, without the optional steps, so the overlay looks as shot.
-      PreprocessOptions plain;
-      plain.format = PixelFormat::kMono16;
-      cv::Mat grey;
-      PreprocessFrame(view.pixels, grey, plain);
-      cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
-      break;
-    }
-    case PixelFormat::kBgr8:
-    case PixelFormat::kAuto:
-      bgr = view.pixels.clone();
-      break;
-  }
-  return bgr;
-}
-
 sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& encoding,
                                      const std_msgs::Header& header) {
   auto image = boost::make_shared<sensor_msgs::Image>();
@@ -177,38 +120,6 @@ sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& e
   image->data.resize(static_cast<size_t>(image->step) * image->height);
   pixels.copyTo(cv::Mat(pixels.rows, pixels.cols, pixels.type(), image->data.data(), image->step));
   return image;
-}
-
-sensor_msgs::ImagePtr DecodeCompressed(const sensor_msgs::CompressedImage& compressed) {
-  namespace enc = sensor_msgs::image_encodings;
-  cv::Mat decoded;
-  if (!compressed.data.empty()) {
-    decoded = cv::imdecode(cv::Mat(1, static_cast<int>(compressed.data.size()), CV_8UC1,
-                                   const_cast<uint8_t*>(compressed.data.data())),
-                           cv::IMREAD_UNCHANGED);
-  }
-  if (decoded.empty()) {
-    throw Error("cannot decode compressed image (format '" + compressed.format + "', " +
-                std::to_string(compressed.data.size()) + " bytes)");
-  }
-  if (decoded.depth() == CV_16U && decoded.channels() != 1) {
-    decoded.convertTo(decoded, CV_8U, 1.0 / 256.0);
-  }
-  std::string encoding;
-  switch (decoded.channels()) {
-    case 1:
-      encoding = decoded.depth() == CV_16U ? enc::MONO16 : enc::MONO8;
-      break;
-    case 3:
-      encoding = enc::BGR8;
-      break;
-    case 4:
-      encoding = enc::BGRA8;
-      break;
-    default:
-      throw Error("compressed image decodes to " + std::to_string(decoded.channels()) + " channels");
-  }
-  return ToImageMessage(decoded, encoding, compressed.header);
 }
 
 cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::Transform* transform) {

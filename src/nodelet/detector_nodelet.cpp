@@ -10,6 +10,7 @@
 // images wait for it (~camera_info_wait). With ~output_frame, images pass a tf2_ros::MessageFilter
 // first, so the callback never blocks on TF and a frame goes out in output_frame or not at all.
 #include <arucotag/ros/conversions.hpp>  // first: it renames the generated ArucoTag message
+#include <arucotag/ros/image_input.hpp>
 #include <arucotag/ros/parameters.hpp>
 
 #include <algorithm>
@@ -104,8 +105,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   PointCloud2ConstPtr NearestCloud(const ros::Time& stamp) const;
   cv::Mat CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
   void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const cv::Mat& cloud, const cv::Size& size);
-  void Publish(const std_msgs::Header& image_header, const ArucoTagArray& array, const ImageView& view,
-               const std::vector<ArucoTag>& tags);
+  void Publish(const ImageConstPtr& image, const ArucoTagArray& array, const std::vector<ArucoTag>& tags);
   void PublishTf(const ArucoTagArray& array);
   std::string ChildFramePrefix(const std::string& camera_frame) const;
 
@@ -286,7 +286,7 @@ void DetectorNodelet::Unsubscribe() {
 void DetectorNodelet::OnCompressed(const CompressedImageConstPtr& compressed) {
   sensor_msgs::ImagePtr image;
   try {
-    image = DecodeCompressed(*compressed);
+    image = DecodeCompressedImage(*compressed);
   } catch (const std::exception& e) {
     ++counts_.received;
     ++counts_.skipped;
@@ -409,14 +409,14 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
   if (arrival != arrived_.end()) arrived_.erase(arrival);
   const std_msgs::Header& header = image->header;
 
-  ImageView view;
+  DetectorImage input;
   std::vector<ArucoTag> tags;
   try {
-    view = ViewImage(*image);
+    input = DetectorImageFrom(image);
     PreprocessOptions options = params_.preprocess;
-    options.format = view.format;
+    options.format = input.format;
     cv::Mat grey;
-    PreprocessFrame(view.pixels, grey, options);
+    PreprocessFrame(input.pixels, grey, options);
     tags = Detect(grey, *detector_);
   } catch (const std::exception& e) {  // arucotag::Error, cv::Exception
     ++counts_.skipped;
@@ -436,7 +436,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
     }
   }
 
-  const cv::Size size = view.pixels.size();
+  const cv::Size size = input.pixels.size();
   const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
   cv::Mat points;
   if (params_.use_point_cloud) {
@@ -445,7 +445,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
   }
   for (auto& tag : tags) Measure(tag, camera, points, size);
   const ArucoTagArray array = ToMessage(tags, header, to_output ? &*to_output : nullptr);
-  Publish(header, array, view, tags);
+  Publish(image, array, tags);
 
   ++counts_.processed;
   const auto end = Clock::now();
@@ -534,16 +534,16 @@ void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& c
   ResolvePose(tag, params_.pose_source);
 }
 
-void DetectorNodelet::Publish(const std_msgs::Header& image_header, const ArucoTagArray& array, const ImageView& view,
+void DetectorNodelet::Publish(const ImageConstPtr& image, const ArucoTagArray& array,
                               const std::vector<ArucoTag>& tags) {
   tags_pub_.publish(boost::make_shared<ArucoTagArray>(array));
   if (params_.publish_tf) PublishTf(array);
   if (markers_pub_.getNumSubscribers() > 0) markers_pub_.publish(ToMarkers(array));
   if (overlay_pub_.getNumSubscribers() > 0) {
     try {
-      cv::Mat overlay = ToBgrCopy(view);
+      cv::Mat overlay = OverlayBgr8(image);
       DrawDetections(overlay, tags);
-      overlay_pub_.publish(ToImageMessage(overlay, "bgr8", image_header));
+      overlay_pub_.publish(ToImageMessage(overlay, "bgr8", image->header));
     } catch (const std::exception& e) {
       Fail("overlay", std::string("overlay: ") + e.what());
     }

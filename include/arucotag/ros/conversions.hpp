@@ -11,7 +11,6 @@
 #include <geometry_msgs/TransformStamped.h>
 #include <opencv2/core.hpp>
 #include <sensor_msgs/CameraInfo.h>
-#include <sensor_msgs/CompressedImage.h>
 #include <sensor_msgs/Image.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <std_msgs/Header.h>
@@ -19,7 +18,6 @@
 
 #include <arucotag/aruco_tag.hpp>
 #include <arucotag/pose.hpp>
-#include <arucotag/preprocess.hpp>
 
 namespace arucotag {
 
@@ -41,24 +39,9 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
 /// model accepts, or the info's size disagrees with `image_size` (when the info states one).
 CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size);
 
-/// A read-only view of an image message's pixels plus their layout. Throws on an empty image, a
-/// malformed buffer (step or size inconsistent) or an encoding PreprocessFrame does not support.
-struct ImageView {
-  cv::Mat pixels;      ///< shares the message's buffer: do not write
-  PixelFormat format;  ///< from the message's encoding
-};
-ImageView ViewImage(const sensor_msgs::Image& image);
-
-/// A bgr8 copy of any supported image for drawing on (mono is replicated, 16-bit scaled to 8 bits).
-cv::Mat ToBgrCopy(const ImageView& view);
-
 /// An 8- or 16-bit image as a message with the given encoding and header (the pixels are copied).
 sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& encoding,
                                      const std_msgs::Header& header);
-
-/// Decodes a sensor_msgs/CompressedImage (jpeg or png) into an Image with the same header:
-/// bgr8/bgra8/mono8/mono16 depending on what the file holds. Throws when it cannot be decoded.
-sensor_msgs::ImagePtr DecodeCompressed(const sensor_msgs::CompressedImage& compressed);
 
 /// An organized PointCloud2 (float32 x, y, z fields at any offsets and point_step, little-endian)
 /// as a CV_32FC3 matrix of height x width, each point moved by `transform` when given (NaN points
