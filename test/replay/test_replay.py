@@ -197,9 +197,15 @@ class ReplayTest(unittest.TestCase):
             self.assertEqual(a, b, "tag array %d differs between replays" % i)
 
 
+def suite():
+    """The recording's checks, then the replays (rostest.rosrun runs one suite)."""
+    loader = unittest.TestLoader()
+    return unittest.TestSuite([loader.loadTestsFromTestCase(RecordingTest), loader.loadTestsFromTestCase(ReplayTest)])
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--bag", required=True)
     args, rest = parser.parse_known_args(rospy.myargv()[1:])
     BAG = args.bag
-    rostest.rosrun("arucotag", "replay", ReplayTest, sysargs=[sys.argv[0]] + rest)
+    rostest.rosrun("arucotag", "replay", "__main__.suite", sysargs=[sys.argv[0]] + rest)
