@@ -81,12 +81,13 @@ constexpr double kInfoPhase = 0.043;  // s
 // rate, so excerpts agree) is a multiple of it.
 constexpr int kCloudEvery = 3;
 // A stereo driver publishes the cloud after its image (it is computed from the pair), but a replay
-// must not depend on which of two topics the detector's callback queue happens to get first: a
-// second replay has to give the same output. So each cloud goes into the bag this many image periods
-// BEFORE its image, half a period after the image before that: it is in the detector's queue
-// before the image one period earlier than its own is played, which is the first image that can
-// pair with it at a cloud_max_dt of one period or more (the nearest cloud is never more than one
-// image period away). Earlier images are nearer to the previous cloud, which is still there.
+// must not depend on which of two topics reaches the detector's callback queue first: a second
+// replay has to give the same output. So each cloud goes into the bag 2.5 image periods BEFORE its
+// image (just after the image three before it, the previous cloud's). With a cloud on every third
+// image, no image is more than one period from its nearest cloud, so the first image that can pair
+// with cloud c (the detector takes the nearest within cloud_max_dt) is image c - 1; the cloud is
+// played 1.5 periods (100 ms at 15 Hz) before that image, so it is queued first. Images before
+// c - 1 are nearer to the previous cloud, which the detector still holds.
 constexpr double kCloudLeadPeriods = 2.5;
 
 struct Args {
@@ -103,8 +104,8 @@ void Usage() {
   std::cerr << "usage: make_sample_bag [--output FILE] [--start S] [--duration S] [--rate HZ] [--threads N]\n"
                "                       [--supersample N] [--jpeg-quality Q] [--compression lz4|bz2|none] [--summary]\n"
                "  Writes the sample recording (defaults: sample.bag, 0-15 s at 15 Hz, jpeg quality 80, lz4 chunks).\n"
-               "  --start/--duration/--rate\n"
-               "  cut an excerpt with the same frames; --summary prints what each marker shows and writes nothing.\n";
+               "  --start/--duration/--rate cut an excerpt with the same frames; --summary prints what each marker\n"
+               "  shows and writes nothing.\n";
 }
 
 Args Parse(int argc, char** argv) {
