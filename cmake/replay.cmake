@@ -22,8 +22,8 @@ install(TARGETS replay_pacer RUNTIME DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATIO
 
 if(CATKIN_ENABLE_TESTING)
   find_package(rostest REQUIRED)
-  # A 3 s, 5 Hz excerpt of the sample (the post at 2-3 m, two faces in view): ~110 MB in the build
-  # folder, made when the tests are built, never committed.
+  # A 3 s, 5 Hz excerpt of the sample (the post at 2-3 m, two faces in view; 15 jpeg images, 5
+  # clouds): 7 MB in the build folder, made when the tests are built, never committed.
   set(ARUCOTAG_REPLAY_TEST_BAG ${CMAKE_BINARY_DIR}/replay_test/short.bag)  # also in the .test files below
   add_custom_command(OUTPUT ${ARUCOTAG_REPLAY_TEST_BAG}
     COMMAND make_sample_bag --output ${ARUCOTAG_REPLAY_TEST_BAG} --start 8 --duration 3 --rate 5

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The demo: replays the sample recording (a rover's stereo camera passing a URC post, made by
-# make_sample_bag on first use) through the detector nodelet with launch/replay.launch, headless,
-# and scores every marker against the recording's truth. Prints the table, writes a few overlay
-# images to $ARUCOTAG_DEMO_OUT (default ./output/demo) and exits non-zero when a marker misses the
-# thresholds (recall >= 90 %, median distance error <= 0.5 % of range, median yaw error <= 1 deg).
+# make_sample_bag on first use; recorded like a field bag: jpeg images on <image>/compressed,
+# camera_info on its own 2 Hz timer, a half-resolution cloud for every third image) through the
+# detector nodelet with launch/replay.launch (compressed transport), headless, and scores every
+# marker against the recording's truth. Prints the table, writes a few overlay images to
+# $ARUCOTAG_DEMO_OUT (default ./output/demo) and exits non-zero when a marker misses the thresholds (recall >= 90 %, median distance error <= 0.5 % of range, median yaw error <= 1 deg).
 #
 # The detector runs with the rover's preset, config/urc.yaml; ARUCOTAG_DEMO_PARAMS overrides
 # detector parameters on top of it (a YAML mapping, e.g. "{corner_refinement: subpix}").
@@ -18,7 +19,7 @@ PARAMS="${ARUCOTAG_DEMO_PARAMS:-{\}}"
 
 # A sample older than the generator may show another scene: make it again.
 if [ ! -f "${BAG}" ] || [ "${GENERATOR}" -nt "${BAG}" ]; then
-  echo "== Generating the sample recording (15 s at 15 Hz, 1280x720, about 1.6 GB) into ${BAG}"
+  echo "== Generating the sample recording (15 s at 15 Hz, 1280x720 jpeg, 640x360 clouds at 5 Hz, about 105 MB) into ${BAG}"
   "${GENERATOR}" --output "${BAG}"
 fi
 

@@ -2,9 +2,12 @@
 """Replays a recording through launch/replay.launch and scores the detector against its truth.
 
 The recording must carry a truth topic (arucotag/ArucoTagTruth, one per image, same stamp): the
-sample that make_sample_bag writes does. Prints one row per marker -- frames seen / frames visible,
-distance, yaw and rotation errors, pose source -- saves a few overlay images, and exits non-zero
-when a marker misses the thresholds. Also imported by the replay rostests (capture and scoring).
+sample that make_sample_bag writes does. Its images are counted on --image-topic (the sample's are
+jpeg, sensor_msgs/CompressedImage on <image>/compressed, which launch/replay.launch feeds the
+nodelet by default; pass --launch-arg image_transport:=raw and the raw topic for a bag of raw
+images). Prints one row per marker -- frames seen / frames visible, distance, yaw and rotation
+errors, pose source -- saves a few overlay images, and exits non-zero when a marker misses the
+thresholds. Also imported by the replay rostests (capture and scoring).
 
     scripts/replay_report.py --bag build/sample/sample.bag --own-master --out output/demo
 """
@@ -49,7 +52,7 @@ class Replay:
     """What one replay produced: truth and tag arrays by stamp (the arrays also as raw bytes)."""
 
     def __init__(self, images):
-        self.images = images  # image messages in the bag
+        self.images = images  # image messages (any transport) on the image topic in the bag
         self.truth = {}       # stamp -> ArucoTagTruth
         self.tags = {}        # stamp -> ArucoTagArray
         self.raw_tags = []    # serialized ArucoTagArray, in arrival order
@@ -110,9 +113,16 @@ def side_px(tag):
     return math.sqrt(abs(area) / 2.0)
 
 
+IMAGE_TOPIC = "/zed/left/image_rect_color/compressed"  # the sample's images (make_sample_bag)
+
+
 def bag_images(path, topic):
-    """Number of messages on `topic` and the bag's time span, from its index (no decompression)."""
+    """Number of messages on `topic` and the bag's time span, from its index (no decompression).
+    Raises when the bag has no such topic: counting zero images would report every frame lost."""
     with rosbag.Bag(path) as bag:
+        topics = bag.get_type_and_topic_info().topics
+        if topic not in topics:
+            raise RuntimeError("%s has no topic %s (it has %s)" % (path, topic, ", ".join(sorted(topics))))
         return bag.get_message_count(topic_filters=[topic]), bag.get_start_time(), bag.get_end_time()
 
 
@@ -159,7 +169,7 @@ class Recorder:
             self.best[slot] = (score, msg.header.stamp)
             replay.overlays[msg.header.stamp] = msg
 
-    def run(self, bag, rate=1.0, launch_args=(), image_topic="/zed/left/image_rect_color", timeout=600.0,
+    def run(self, bag, rate=1.0, launch_args=(), image_topic=IMAGE_TOPIC, timeout=600.0,
             log=None):
         """Plays `bag` through replay.launch (headless) and collects until every image has its tag
         array, playback has been over for a while, or `timeout` s passed. Returns a Replay."""
@@ -364,7 +374,8 @@ def main():
     parser.add_argument("--tags-topic", default="/zed/tags")
     parser.add_argument("--truth-topic", default="/truth/tags")
     parser.add_argument("--overlay-topic", default="/zed/overlay")
-    parser.add_argument("--image-topic", default="/zed/left/image_rect_color")
+    parser.add_argument("--image-topic", default=IMAGE_TOPIC,
+                        help="topic whose messages are the frames to expect (default: the sample's jpeg images)")
     parser.add_argument("--log", help="file for roslaunch's output (default: <ROS_LOG_DIR or /tmp>/replay_report.log)")
     parser.add_argument("--timeout", type=float, default=600.0, help="s before giving up on the replay")
     t = Thresholds()

@@ -4,6 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <stdexcept>
 
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
@@ -119,6 +121,9 @@ cv::Mat MotionKernel(double length, double angle_deg) {
 
 SampleScene::SampleScene(const SampleOptions& options)
     : options_(options), camera_(sim::MakeCamera(options.size, options.hfov_deg)) {
+  if (options.cloud_factor < 1 || options.size.width % options.cloud_factor || options.size.height % options.cloud_factor) {
+    throw std::invalid_argument("SampleOptions: cloud_factor must be >= 1 and divide the image's width and height");
+  }
   // A URC post: one id on the three faces of a triangular prism (0.2 m faces, centre 0.6 m up).
   const cv::Vec3d post(7.65, -0.98, 0.6);
   const double post_turn = 21.6;  // deg: face a looks back along the approach, 20-50 deg off axis
@@ -176,6 +181,19 @@ Transform SampleScene::RoverPose(double t) const {
   const double roll = 0.7 * std::sin(w * 1.1 * t + 0.4) * kDeg;
   const double bounce = 0.01 * std::sin(w * 1.7 * t + 0.5);
   return Transform(RotZ(p[2]) * RotY(pitch) * RotX(roll), cv::Vec3d(p[0], p[1], bounce));
+}
+
+sim::Camera SampleScene::CloudCamera() const {
+  // Image pixel centres are at integer coordinates: block u spans f u - 0.5 ... f u + f - 0.5, whose
+  // centre f u + (f - 1) / 2 must map to u.
+  const double f = options_.cloud_factor;
+  sim::Camera grid = camera_;
+  grid.size = cv::Size(camera_.size.width / options_.cloud_factor, camera_.size.height / options_.cloud_factor);
+  grid.K(0, 0) /= f;
+  grid.K(1, 1) /= f;
+  grid.K(0, 2) = (camera_.K(0, 2) - (f - 1.0) / 2.0) / f;
+  grid.K(1, 2) = (camera_.K(1, 2) - (f - 1.0) / 2.0) / f;
+  return grid;
 }
 
 Transform SampleScene::MastMount() { return Transform(RotY(4.0 * kDeg), cv::Vec3d(0.25, 0.06, 1.0)); }
@@ -392,7 +410,7 @@ void SampleScene::RenderPoles(const Transform& odom_optical, cv::Mat& colour, cv
   }
 }
 
-SampleFrame SampleScene::Render(double t) const {
+SampleFrame SampleScene::Render(double t, bool with_cloud) const {
   const Transform odom_optical = CameraPose(t);
   const std::vector<sim::Marker> markers = MarkersInView(odom_optical);
   // Two marker passes over a flat grey (128) background: printed levels, then all-white, which
@@ -450,13 +468,33 @@ SampleFrame SampleScene::Render(double t) const {
   colour += noise;
   colour.convertTo(frame.image, CV_8UC3);
 
-  // Stereo cloud: nothing beyond its range, dropouts and depth noise, then into the body frame.
-  depth.setTo(std::numeric_limits<float>::quiet_NaN(), depth > options_.cloud_range);
+  if (!with_cloud) return frame;
+  // Stereo cloud at the reduced resolution: each block's mean depth (what it sees within range; NaN
+  // when nothing is), dropouts and depth noise on that grid, then into the body frame.
+  const int f = options_.cloud_factor;
+  const sim::Camera grid = CloudCamera();
+  cv::Mat block_depth(grid.size, CV_32F);
+  for (int v = 0; v < grid.size.height; ++v) {
+    for (int u = 0; u < grid.size.width; ++u) {
+      double sum = 0.0;
+      int count = 0;
+      for (int dv = 0; dv < f; ++dv) {
+        const float* z = depth.ptr<float>(f * v + dv) + f * u;
+        for (int du = 0; du < f; ++du) {
+          if (std::isfinite(z[du]) && z[du] <= options_.cloud_range) {
+            sum += z[du];
+            ++count;
+          }
+        }
+      }
+      block_depth.at<float>(v, u) = count ? static_cast<float>(sum / count) : std::numeric_limits<float>::quiet_NaN();
+    }
+  }
   sim::CloudOptions cloud_options;
   cloud_options.nan_fraction = options_.cloud_holes;
   cloud_options.depth_noise_sigma = options_.cloud_noise;
   cloud_options.seed = seed + 1;
-  const cv::Mat optical = sim::MakeOrganizedCloud(camera_, depth, cloud_options);
+  const cv::Mat optical = sim::MakeOrganizedCloud(grid, block_depth, cloud_options);
   const cv::Matx33f to_body = OpticalInBody().rotation();
   frame.cloud.create(optical.size(), CV_32FC3);
   for (int v = 0; v < optical.rows; ++v) {

@@ -43,7 +43,10 @@ struct TruthTag {
 struct SampleFrame {
   double time = 0;        ///< s since the start of the scene
   cv::Mat image;          ///< CV_8UC3 BGR
-  cv::Mat cloud;          ///< CV_32FC3, organized like the image, in the body frame (x forward, z up), NaN holes
+  /// CV_32FC3 organized stereo cloud at 1 / SampleOptions::cloud_factor of the image's width and height
+  /// (point (u, v) covers image pixels [f u, f u + f) x [f v, f v + f)), in the body frame (x forward,
+  /// z up), NaN holes; empty when Render was asked for no cloud.
+  cv::Mat cloud;
   std::vector<TruthTag> truth;  ///< markers facing the camera with their centre in the image
   double brightness = 1, exposure_ms = 0, motion_blur_px = 0;  ///< what the photometry did (for the log)
 };
@@ -56,6 +59,10 @@ struct SampleOptions {
   double cloud_holes = 0.25;   ///< fraction of NaN pixels (stereo dropouts), on top of the sky
   double cloud_noise = 0.004;  ///< relative depth noise (sigma / depth)
   double cloud_range = 20.0;   ///< m, stereo cut-off: farther points are NaN
+  /// Image pixels per cloud point along each axis: a stereo camera computes depth at a reduced
+  /// resolution (a ZED's cloud can be a half or a quarter of its image). Each point lies on the ray
+  /// through its pixel block's centre at the mean depth of the block.
+  int cloud_factor = 2;
 };
 
 /// The sample world and its renderer. Construction builds the ground texture (about a second).
@@ -78,8 +85,12 @@ class SampleScene {
 
   /// Truth only (cheap): the markers a frame at time t shows.
   std::vector<TruthTag> Truth(double t) const;
-  /// Renders the frame at time t (s). Deterministic in t.
-  SampleFrame Render(double t) const;
+  /// Renders the frame at time t (s), with its stereo cloud unless `with_cloud` is false (the
+  /// cloud's holes and noise depend on t only, so skipping it changes nothing else). Deterministic in t.
+  SampleFrame Render(double t, bool with_cloud = true) const;
+  /// The camera model of the cloud's grid: Camera() scaled down by cloud_factor, with the principal
+  /// point moved so that cloud point (u, v) looks through the centre of its image pixel block.
+  sim::Camera CloudCamera() const;
 
  private:
   struct Pole {
