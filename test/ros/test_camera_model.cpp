@@ -67,15 +67,6 @@ double RotationError(const cv::Vec3d& a, const cv::Vec3d& b) {
   return std::acos(std::max(-1.0, std::min(1.0, (cv::trace(ra.t() * rb) - 1.0) / 2.0)));
 }
 
-std::string ErrorOf(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return {};
-}
-
 /// Markers spread over the sensor: one near each corner of the frame and one in the middle.
 std::vector<sim::Marker> Spread(const sim::Camera& camera, double range) {
   std::vector<sim::Marker> markers;
@@ -219,66 +210,68 @@ TEST(CameraModelFromInfo, FisheyeInfo) {
   EXPECT_EQ(ExpectFullResolutionPoses(Bin(image, 2), info, false, markers, "fisheye binned", 0.3), 5);
 }
 
-TEST(CameraModelFromInfo, BadInfosAreNamed) {
+TEST(CameraModelFromInfo, InfosAreCheckedAndProblemsNamed) {
   const sim::Camera full = FullCamera();
   const cv::Size size = full.size;
-  const auto error = [&](const sensor_msgs::CameraInfo& info, bool rectified, const cv::Size& image_size) {
-    return ErrorOf([&] { CameraModelFromInfo(info, rectified, image_size); });
+  struct Case {
+    std::string what;
+    std::function<void(sensor_msgs::CameraInfo&)> edit;
+    bool rectified;
+    cv::Size image_size;
+    std::string error;  ///< a part of the message; empty: accepted
   };
-  const auto contains = [](const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos ? ::testing::AssertionSuccess()
-                                                 : ::testing::AssertionFailure() << "'" << text << "' lacks '" << part << "'";
+  const auto set_roi = [](int x, int y, int w, int h) {
+    return [=](sensor_msgs::CameraInfo& info) {
+      info.roi.x_offset = x;
+      info.roi.y_offset = y;
+      info.roi.width = w;
+      info.roi.height = h;
+    };
   };
-  EXPECT_EQ(error(InfoFor(full), false, size), "");
-
-  sensor_msgs::CameraInfo info = InfoFor(full);
-  info.K.fill(0.0);
-  EXPECT_TRUE(contains(error(info, false, size), "K is all zero"));
-  info = InfoFor(full);
-  info.K[4] = NAN;
-  EXPECT_TRUE(contains(error(info, false, size), "K has a NaN or infinite"));
-  info = InfoFor(full);
-  info.K[0] = -800.0;
-  EXPECT_TRUE(contains(error(info, false, size), "fx"));
-  info = InfoFor(full);
-  info.P[2] = INFINITY;
-  EXPECT_TRUE(contains(error(info, true, size), "P has a NaN or infinite"));
-  EXPECT_EQ(error(info, false, size), "");  // the raw path does not read P
-  info = InfoFor(full);
-  info.P.fill(0.0);
-  EXPECT_TRUE(contains(error(info, true, size), "P is all zero"));
-
-  info = InfoFor(full);
-  info.binning_x = info.binning_y = 2;
-  const std::string binned = error(info, false, size);
-  EXPECT_TRUE(contains(binned, "640x360 image"));
-  EXPECT_TRUE(contains(binned, "binning 2x2"));
-  EXPECT_TRUE(contains(binned, "image is 1280x720"));
-  info = InfoFor(full);
-  info.roi.x_offset = 1000;
-  info.roi.width = 400;
-  info.roi.height = 300;
-  EXPECT_TRUE(contains(error(info, false, {400, 300}), "roi does not lie within the sensor"));
-  info.roi.x_offset = 800;
-  EXPECT_EQ(error(info, false, {400, 300}), "");
-  EXPECT_TRUE(contains(error(info, false, size), "400x300 image"));
-
-  info = InfoFor(full);
-  info.distortion_model = "kannala_brandt";
-  EXPECT_TRUE(contains(error(info, false, size), "'kannala_brandt' is not supported"));
-  EXPECT_EQ(error(info, true, size), "");  // rectified: D plays no part
-  info.D.assign(5, 0.0);
-  EXPECT_EQ(error(info, false, size), "");  // no distortion to misread
-  info = InfoFor(FisheyeCamera());
-  info.D.push_back(0.0);
-  EXPECT_TRUE(contains(error(info, false, size), "needs 4"));
-  info = InfoFor(full);
-  info.D = {0.1, 0.2, 0.3};
-  EXPECT_TRUE(contains(error(info, false, size), "3 coefficients"));
-
-  info = InfoFor(full);
-  info.width = info.height = 0;  // a driver that states no size: nothing to compare
-  EXPECT_EQ(error(info, false, {320, 240}), "");
+  const std::vector<Case> cases = {
+      {"as calibrated", [](auto&) {}, false, size, ""},
+      {"zero K", [](auto& info) { info.K.fill(0.0); }, false, size, "K is all zero"},
+      {"NaN fy", [](auto& info) { info.K[4] = NAN; }, false, size, "K has a NaN or infinite"},
+      {"negative fx", [](auto& info) { info.K[0] = -800.0; }, false, size, "fx"},
+      {"infinite P, rectified", [](auto& info) { info.P[2] = INFINITY; }, true, size, "P has a NaN or infinite"},
+      {"infinite P, raw (P unused)", [](auto& info) { info.P[2] = INFINITY; }, false, size, ""},
+      {"zero P", [](auto& info) { info.P.fill(0.0); }, true, size, "P is all zero"},
+      {"binned info, full image", [](auto& info) { info.binning_x = info.binning_y = 2; }, false, size,
+       "is for a 640x360 image (1280x720 sensor, roi 0,0 1280x720, binning 2x2) but the image is 1280x720"},
+      {"roi beyond the sensor", set_roi(1000, 0, 400, 300), false, {400, 300}, "roi does not lie within the sensor"},
+      {"roi inside the sensor", set_roi(800, 0, 400, 300), false, {400, 300}, ""},
+      {"roi, full image", set_roi(800, 0, 400, 300), false, size, "is for a 400x300 image"},
+      {"roi offset without size", set_roi(8, 8, 0, 0), false, size, "roi does not lie within the sensor"},
+      {"unknown model", [](auto& info) { info.distortion_model = "kannala_brandt"; }, false, size,
+       "'kannala_brandt' is not supported"},
+      {"unknown model, rectified (D unused)", [](auto& info) { info.distortion_model = "kannala_brandt"; }, true,
+       size, ""},
+      {"unknown model, zero D",
+       [](auto& info) {
+         info.distortion_model = "kannala_brandt";
+         info.D.assign(5, 0.0);
+       },
+       false, size, ""},
+      {"equidistant with 5 coefficients", [](auto& info) { info.distortion_model = "equidistant"; }, false, size,
+       "needs 4"},
+      {"plumb_bob with 3 coefficients", [](auto& info) { info.D = {0.1, 0.2, 0.3}; }, false, size, "3 coefficients"},
+      {"no size stated: nothing to compare", [](auto& info) { info.width = info.height = 0; }, false, {320, 240}, ""},
+  };
+  for (const auto& c : cases) {
+    sensor_msgs::CameraInfo info = InfoFor(full);
+    c.edit(info);
+    std::string message;
+    try {
+      CameraModelFromInfo(info, c.rectified, c.image_size);
+    } catch (const Error& e) {
+      message = e.what();
+    }
+    if (c.error.empty()) {
+      EXPECT_EQ(message, "") << c.what;
+    } else {
+      EXPECT_NE(message.find(c.error), std::string::npos) << c.what << ": '" << message << "'";
+    }
+  }
 }
 
 }  // namespace
