@@ -87,13 +87,20 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
 }
 
 CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size) {
-  namespace models = sensor_msgs::distortion_models;
   image_geometry::PinholeCameraModel geometry;
   try {
     geometry.fromCameraInfo(info);
   } catch (const std::exception& e) {  // image_geometry::Exception
     throw Error(std::string("camera_info not usable: ") + e.what());
   }
+  return CameraModelFromInfo(geometry, use_projection, image_size);
+}
+
+CameraModel CameraModelFromInfo(const image_geometry::PinholeCameraModel& geometry, bool use_projection,
+                                const cv::Size& image_size) {
+  namespace models = sensor_msgs::distortion_models;
+  if (!geometry.initialized()) throw Error("no camera_info received yet");
+  const sensor_msgs::CameraInfo& info = geometry.cameraInfo();
   // image_geometry reads binning 0 as 1 and an all-zero ROI as the whole sensor. K, D and P stay
   // full-resolution; the pixel mapping places this image's pixels on the sensor.
   const int binning_x = static_cast<int>(geometry.binningX()), binning_y = static_cast<int>(geometry.binningY());
@@ -135,7 +142,9 @@ CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_pr
     const cv::Matx33d& K = geometry.fullIntrinsicMatrix();
     if (model == models::EQUIDISTANT) {
       camera = CameraModel::FromFisheye(K, info.D);
-    } else if (model == models::PLUMB_BOB || model == models::RATIONAL_POLYNOMIAL || all_zero(info.D)) {
+    } else if (model == models::PLUMB_BOB || model == models::RATIONAL_POLYNOMIAL || model.empty() ||
+               all_zero(info.D)) {
+      // Older drivers leave the model empty; OpenCV's pinhole model then reads D by its count.
       camera = CameraModel::FromIntrinsics(K, info.D);
     } else {
       throw Error("camera_info distortion model '" + model + "' is not supported (" + models::PLUMB_BOB + ", " +

@@ -252,6 +252,8 @@ TEST(CameraModelFromInfo, InfosAreCheckedAndProblemsNamed) {
          info.D.assign(5, 0.0);
        },
        false, size, ""},
+      {"no model named, plumb_bob's D (older drivers)", [](auto& info) { info.distortion_model = ""; }, false, size,
+       ""},
       {"equidistant with 5 coefficients", [](auto& info) { info.distortion_model = "equidistant"; }, false, size,
        "needs 4"},
       {"plumb_bob with 3 coefficients", [](auto& info) { info.D = {0.1, 0.2, 0.3}; }, false, size, "3 coefficients"},
@@ -272,6 +274,26 @@ TEST(CameraModelFromInfo, InfosAreCheckedAndProblemsNamed) {
       EXPECT_NE(message.find(c.error), std::string::npos) << c.what << ": '" << message << "'";
     }
   }
+}
+
+TEST(CameraModelFromInfo, FromAKeptImageGeometryModel) {
+  image_geometry::PinholeCameraModel geometry;
+  std::string message;
+  try {
+    CameraModelFromInfo(geometry, false, {640, 360});
+  } catch (const Error& e) {
+    message = e.what();
+  }
+  EXPECT_EQ(message, "no camera_info received yet");
+  sensor_msgs::CameraInfo info = InfoFor(FisheyeCamera());
+  info.binning_x = info.binning_y = 2;
+  geometry.fromCameraInfo(info);
+  const CameraModel camera = CameraModelFromInfo(geometry, false, {640, 360});
+  EXPECT_EQ(camera.distortion_model, DistortionModel::kEquidistant);
+  EXPECT_EQ(camera.distortion, info.D);
+  EXPECT_EQ(camera.K, FisheyeCamera().K);
+  EXPECT_EQ(camera.pixels.scale, cv::Vec2d(2.0, 2.0));
+  EXPECT_EQ(camera.pixels.offset, cv::Vec2d(0.5, 0.5));
 }
 
 }  // namespace

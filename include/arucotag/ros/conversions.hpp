@@ -9,6 +9,7 @@
 #include <geometry_msgs/Pose.h>
 #include <geometry_msgs/Transform.h>
 #include <geometry_msgs/TransformStamped.h>
+#include <image_geometry/pinhole_camera_model.h>
 #include <opencv2/core.hpp>
 #include <sensor_msgs/CameraInfo.h>
 #include <sensor_msgs/CompressedImage.h>
@@ -41,10 +42,14 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
 /// binning and ROI become the model's pixel mapping (see PixelMapping::FromBinningAndRoi), so
 /// poses from a binned or cropped image are full-resolution poses. Throws arucotag::Error when the
 /// matrix used is all zero (an uncalibrated driver) or has a NaN/infinite entry, fx/fy are not
-/// positive, the distortion model is unknown (with non-zero D) or has the wrong coefficient count,
-/// the ROI lies outside the sensor, or `image_size` differs from the ROI's size divided by the
-/// binning (not checked when the info states no size).
+/// positive, the distortion model is unknown (with non-zero D; an empty name reads D as OpenCV's
+/// pinhole model) or has the wrong coefficient count, the ROI lies outside the sensor, or
+/// `image_size` differs from the ROI's size divided by the binning (not checked when the info
+/// states no size).
 CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size);
+/// The same from an image_geometry model a nodelet keeps updated with fromCameraInfo().
+CameraModel CameraModelFromInfo(const image_geometry::PinholeCameraModel& geometry, bool use_projection,
+                                const cv::Size& image_size);
 
 /// A read-only view of an image message's pixels plus their layout. Throws on an empty image, a
 /// malformed buffer (step or size inconsistent) or an encoding PreprocessFrame does not support.
