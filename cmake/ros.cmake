@@ -36,6 +36,12 @@ if(CATKIN_ENABLE_TESTING)
   target_link_libraries(test_ros_encodings arucotag_core ${catkin_LIBRARIES} ${GTEST_MAIN_LIBRARIES})
   target_compile_definitions(test_ros_encodings PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
 
+  # The camera_info conversion without a master: binned, cropped and fisheye renders against truth.
+  catkin_add_gtest(test_camera_model test/ros/test_camera_model.cpp)
+  target_include_directories(test_camera_model PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(test_camera_model SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(test_camera_model arucotag_nodelet arucotag_sim ${catkin_LIBRARIES} ${GTEST_MAIN_LIBRARIES})
+
   find_package(rostest REQUIRED)
   # Each rostest starts its own master and manager; the test node publishes frames rendered by
   # arucotag_sim (ROS-free) and checks what the real nodelet publishes.

@@ -8,26 +8,69 @@
 
 namespace arucotag {
 
+/// The lens model a CameraModel's distortion coefficients belong to.
+enum class DistortionModel {
+  kRadialTangential,  ///< OpenCV's pinhole model (ROS plumb_bob, rational_polynomial)
+  kEquidistant,       ///< OpenCV's cv::fisheye model (ROS equidistant): r = f * theta_d, k1..k4
+};
+
+/// Where an image's pixels lie in the pixel grid the camera was calibrated in. Sensor binning and a
+/// region of interest shrink and crop the image but leave K and D describing the full sensor; this
+/// affine map carries image pixels to full-sensor pixels, pixel centres at integer coordinates in
+/// both (OpenCV's convention).
+struct PixelMapping {
+  cv::Vec2d scale{1.0, 1.0};   ///< full-sensor pixels per image pixel, x and y
+  cv::Vec2d offset{0.0, 0.0};  ///< full-sensor position of image pixel (0, 0)
+
+  /// Binning (b >= 1 sensor pixels summed into one image pixel along each axis) after a crop whose
+  /// top-left corner is full-sensor pixel `roi_offset`: image pixel u covers sensor pixels
+  /// roi + u*b .. roi + u*b + b-1, so its centre is (u + 0.5) * b - 0.5 + roi. (image_geometry's
+  /// toFullResolution uses u * b + roi, which drops the (b - 1) / 2 centring term: a quarter of an
+  /// image pixel at 2x binning.) Throws arucotag::Error when a binning is below 1.
+  static PixelMapping FromBinningAndRoi(int binning_x, int binning_y, const cv::Point2d& roi_offset);
+
+  cv::Point2d ToSensor(const cv::Point2d& image) const;   ///< image pixel -> full-sensor pixel
+  cv::Point2d ToImage(const cv::Point2d& sensor) const;   ///< full-sensor pixel -> image pixel
+  bool IsIdentity() const;
+};
+
 /// Intrinsics of the camera that took the frame.
 struct CameraModel {
-  cv::Matx33d K = cv::Matx33d::zeros();  ///< fx 0 cx; 0 fy cy; 0 0 1
-  /// Distortion coefficients in OpenCV order (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]): 0, 4, 5,
-  /// 8, 12 or 14 values. Empty for a rectified image.
+  cv::Matx33d K = cv::Matx33d::zeros();  ///< fx 0 cx; 0 fy cy; 0 0 1, full-sensor pixels
+  /// Distortion coefficients. kRadialTangential: OpenCV order (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4
+  /// [tx ty]]]]), 0, 4, 5, 8, 12 or 14 values, empty for a rectified image. kEquidistant: exactly
+  /// k1 k2 k3 k4 (all zero is still a fisheye lens, r = f * theta).
   std::vector<double> distortion;
+  DistortionModel distortion_model = DistortionModel::kRadialTangential;
+  /// Image pixels -> the pixels K and distortion were calibrated in (identity without binning/ROI).
+  PixelMapping pixels;
 
-  /// From K and distortion (a raw image).
+  /// From K and distortion (a raw image through a pinhole lens).
   static CameraModel FromIntrinsics(const cv::Matx33d& K, const std::vector<double>& distortion);
+  /// From K and the four equidistant coefficients k1..k4 (a raw image through a fisheye lens).
+  static CameraModel FromFisheye(const cv::Matx33d& K, const std::vector<double>& distortion);
   /// From the 3x4 projection matrix P of a rectified image: its left 3x3 block, no distortion.
   static CameraModel FromProjection(const cv::Matx34d& P);
 
-  /// Throws arucotag::Error when fx or fy is not a positive finite number, cx/cy are not finite, or
-  /// the distortion count is one OpenCV does not accept.
+  /// Throws arucotag::Error when fx or fy is not a positive finite number, another entry of K is
+  /// not finite, K's last row is not 0 0 1, the distortion count is not one the model accepts, a
+  /// coefficient is not finite, or the pixel mapping's scale is not positive and finite.
   void Validate() const;
+
+  /// Image pixels (this image, after binning/ROI) of points given in the marker frame, seen with
+  /// the marker -> camera rotation (Rodrigues) and translation. Points must be in front of the lens.
+  std::vector<cv::Point2d> Project(const std::vector<cv::Point3d>& points, const cv::Vec3d& rvec,
+                                   const cv::Vec3d& tvec) const;
+  /// Normalized image coordinates (x/z, y/z of the ray) of image pixels: the pixel mapping undone,
+  /// then the lens distortion. A fisheye pixel more than 90 degrees off axis has no such coordinate.
+  std::vector<cv::Point2d> Normalize(const std::vector<cv::Point2d>& image) const;
 };
 
 /// Solves the marker's pose from its four corners with cv::solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)
 /// on object points centred on the marker (TL, TR, BR, BL, side tag.side_length), honouring the
-/// camera's distortion. Keeps both IPPE solutions in tag.pnp with their RMS reprojection errors and
+/// camera's pixel mapping and lens model (the corners are normalized first, so pinhole and fisheye
+/// lenses share one solver). Keeps both IPPE solutions in tag.pnp with their RMS reprojection
+/// errors (image pixels) and
 /// the ambiguity ratio, then sets the tag's pose (see ResolvePose: fused when the tag already has a
 /// cloud result). Returns false (pose untouched) when OpenCV finds no solution. Throws
 /// arucotag::Error on invalid intrinsics or a non-positive side length.

@@ -12,18 +12,28 @@
 namespace arucotag::sim {
 
 // Pinhole camera with optional OpenCV distortion (k1 k2 p1 p2 [k3 ...], any
-// count cv::projectPoints accepts; empty = none). Pixel centres are at integer
-// coordinates (OpenCV convention).
+// count cv::projectPoints accepts; empty = none), or with fisheye set, an
+// equidistant (cv::fisheye) lens: dist = k1 k2 k3 k4 and a ray theta off axis
+// lands f * theta * (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+// from the principal point. Pixel centres are at integer coordinates (OpenCV
+// convention).
 struct Camera {
   cv::Matx33d K;
   std::vector<double> dist;
   cv::Size size;
+  bool fisheye = false;
 };
 
 // Takes the image size and horizontal field of view in degrees; returns a
 // square-pixel camera with the principal point at the image centre
 // ((w-1)/2, (h-1)/2) and no distortion.
 Camera MakeCamera(cv::Size size, double hfov_deg);
+
+// Takes the image size, horizontal field of view in degrees (below 180) and
+// the equidistant coefficients k1..k4; returns a square-pixel fisheye camera
+// with the principal point at the image centre whose left and right image
+// edges lie hfov_deg / 2 off axis.
+Camera MakeFisheyeCamera(cv::Size size, double hfov_deg, const std::vector<double>& k = {0, 0, 0, 0});
 
 // A square marker placed in the camera optical frame (x right, y down, z forward).
 // Marker frame = OpenCV aruco convention: origin at the marker centre, x to the
@@ -67,7 +77,7 @@ cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers, const
                     cv::Mat* depth = nullptr);
 
 // Takes a camera and marker; returns the true image corners TL TR BR BL via
-// cv::projectPoints (distortion honoured). Assumes the marker is in front.
+// cv::projectPoints or cv::fisheye::projectPoints (distortion honoured). Assumes the marker is in front.
 std::array<cv::Point2f, 4> ProjectCorners(const Camera& cam, const Marker& m);
 
 // Takes a camera and marker; returns the image of the marker centre.

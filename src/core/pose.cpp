@@ -9,6 +9,28 @@
 
 namespace arucotag {
 
+PixelMapping PixelMapping::FromBinningAndRoi(int binning_x, int binning_y, const cv::Point2d& roi_offset) {
+  if (binning_x < 1 || binning_y < 1) {
+    throw Error("pixel mapping: binning must be at least 1 (got " + std::to_string(binning_x) + "x" +
+                std::to_string(binning_y) + ")");
+  }
+  PixelMapping mapping;
+  mapping.scale = cv::Vec2d(binning_x, binning_y);
+  // The centre of image pixel 0 is the centre of the binned block's sensor pixels 0 .. b-1.
+  mapping.offset = cv::Vec2d(roi_offset.x + 0.5 * (binning_x - 1), roi_offset.y + 0.5 * (binning_y - 1));
+  return mapping;
+}
+
+cv::Point2d PixelMapping::ToSensor(const cv::Point2d& image) const {
+  return {image.x * scale[0] + offset[0], image.y * scale[1] + offset[1]};
+}
+
+cv::Point2d PixelMapping::ToImage(const cv::Point2d& sensor) const {
+  return {(sensor.x - offset[0]) / scale[0], (sensor.y - offset[1]) / scale[1]};
+}
+
+bool PixelMapping::IsIdentity() const { return scale == cv::Vec2d(1.0, 1.0) && offset == cv::Vec2d(0.0, 0.0); }
+
 CameraModel CameraModel::FromIntrinsics(const cv::Matx33d& K, const std::vector<double>& distortion) {
   CameraModel camera;
   camera.K = K;
@@ -17,6 +39,14 @@ CameraModel CameraModel::FromIntrinsics(const cv::Matx33d& K, const std::vector<
   if (std::all_of(distortion.begin(), distortion.end(), [](double d) { return d == 0.0; })) {
     camera.distortion.clear();
   }
+  return camera;
+}
+
+CameraModel CameraModel::FromFisheye(const cv::Matx33d& K, const std::vector<double>& distortion) {
+  CameraModel camera;
+  camera.K = K;
+  camera.distortion = distortion;  // zeros stay: an equidistant lens without them is still no pinhole
+  camera.distortion_model = DistortionModel::kEquidistant;
   return camera;
 }
 
@@ -32,16 +62,57 @@ void CameraModel::Validate() const {
     throw Error("camera intrinsics invalid: fx and fy must be positive (got fx=" + std::to_string(fx) +
                 ", fy=" + std::to_string(fy) + "); is camera_info calibrated?");
   }
-  if (!(std::isfinite(cx) && std::isfinite(cy))) {
-    throw Error("camera intrinsics invalid: cx and cy must be finite");
+  if (!(std::isfinite(cx) && std::isfinite(cy) && std::isfinite(K(0, 1)))) {
+    throw Error("camera intrinsics invalid: cx, cy and the skew must be finite");
+  }
+  if (K(1, 0) != 0.0 || K(2, 0) != 0.0 || K(2, 1) != 0.0 || K(2, 2) != 1.0) {
+    throw Error("camera intrinsics invalid: K must read fx s cx; 0 fy cy; 0 0 1");
   }
   const size_t n = distortion.size();
-  if (n != 0 && n != 4 && n != 5 && n != 8 && n != 12 && n != 14) {
+  if (distortion_model == DistortionModel::kEquidistant) {
+    if (n != 4) {
+      throw Error("fisheye (equidistant) camera has " + std::to_string(n) + " distortion coefficients; it needs 4 (k1..k4)");
+    }
+  } else if (n != 0 && n != 4 && n != 5 && n != 8 && n != 12 && n != 14) {
     throw Error("camera distortion has " + std::to_string(n) + " coefficients; OpenCV accepts 4, 5, 8, 12 or 14");
   }
   for (double d : distortion) {
     if (!std::isfinite(d)) throw Error("camera distortion coefficient is not finite");
   }
+  const PixelMapping& m = pixels;
+  if (!(std::isfinite(m.scale[0]) && std::isfinite(m.scale[1]) && m.scale[0] > 0.0 && m.scale[1] > 0.0 &&
+        std::isfinite(m.offset[0]) && std::isfinite(m.offset[1]))) {
+    throw Error("camera pixel mapping invalid: scale must be positive and offset finite");
+  }
+}
+
+std::vector<cv::Point2d> CameraModel::Project(const std::vector<cv::Point3d>& points, const cv::Vec3d& rvec,
+                                              const cv::Vec3d& tvec) const {
+  std::vector<cv::Point2d> image;
+  if (points.empty()) return image;
+  if (distortion_model == DistortionModel::kEquidistant) {
+    cv::fisheye::projectPoints(points, image, rvec, tvec, K, distortion);
+  } else {
+    cv::projectPoints(points, rvec, tvec, K, distortion, image);
+  }
+  if (!pixels.IsIdentity()) {
+    for (auto& p : image) p = pixels.ToImage(p);
+  }
+  return image;
+}
+
+std::vector<cv::Point2d> CameraModel::Normalize(const std::vector<cv::Point2d>& image) const {
+  std::vector<cv::Point2d> sensor(image), normalized;
+  if (image.empty()) return normalized;
+  if (!pixels.IsIdentity()) {
+    for (auto& p : sensor) p = pixels.ToSensor(p);
+  }
+  if (distortion_model == DistortionModel::kEquidistant) {
+    cv::fisheye::undistortPoints(sensor, normalized, K, distortion);
+  } else {
+    cv::undistortPoints(sensor, normalized, K, distortion);
+  }
+  return normalized;
 }
 
 namespace {
@@ -64,8 +135,18 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
     if (!std::isfinite(c.x) || !std::isfinite(c.y)) return false;
     image.emplace_back(c);
   }
-  const cv::Mat K(camera.K);
-  const cv::Mat dist = camera.distortion.empty() ? cv::Mat() : cv::Mat(camera.distortion);
+  // Normalized coordinates take binning, ROI and either lens model out of the solver; OpenCV's
+  // solvePnPGeneric undistorts to exactly these (cv::undistortPoints) before IPPE or SQPNP anyway.
+  std::vector<cv::Point2d> normalized;
+  try {
+    normalized = camera.Normalize(image);
+  } catch (const cv::Exception& e) {
+    throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the camera: ") + e.what());
+  }
+  for (const auto& p : normalized) {
+    // cv::fisheye marks points it cannot undistort (beyond 90 degrees off axis) with huge values.
+    if (!std::isfinite(p.x) || !std::isfinite(p.y) || std::abs(p.x) > 1e5 || std::abs(p.y) > 1e5) return false;
+  }
   struct Candidate {
     cv::Vec3d rvec, tvec;
     double rms;
@@ -73,19 +154,27 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   std::vector<Candidate> candidates;
   const auto solve = [&](int method) {
     std::vector<cv::Mat> rvecs, tvecs;
-    cv::Mat errors;
     int n = 0;
     try {
-      n = cv::solvePnPGeneric(object, image, K, dist, rvecs, tvecs, false, static_cast<cv::SolvePnPMethod>(method),
-                              cv::noArray(), cv::noArray(), errors);
+      n = cv::solvePnPGeneric(object, normalized, cv::Matx33d::eye(), cv::noArray(), rvecs, tvecs, false,
+                              static_cast<cv::SolvePnPMethod>(method));
     } catch (const cv::Exception& e) {
       throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
     }
     for (int i = 0; i < n; ++i) {
-      const cv::Vec3d t(tvecs[i].ptr<double>());
-      const double rms = errors.at<double>(i);
-      if (!(t[2] > 0.0) || !std::isfinite(rms)) continue;  // behind the camera: not a physical solution
-      candidates.push_back({cv::Vec3d(rvecs[i].ptr<double>()), t, rms});
+      const cv::Vec3d r(rvecs[i].ptr<double>()), t(tvecs[i].ptr<double>());
+      if (!(t[2] > 0.0)) continue;  // behind the camera: not a physical solution
+      // The error is measured where the corners were found: in this image's pixels.
+      const std::vector<cv::Point2d> projected = camera.Project(object, r, t);
+      double sum_sq = 0.0;
+      for (size_t k = 0; k < image.size(); ++k) {
+        const cv::Point2d d = projected[k] - image[k];
+        sum_sq += d.dot(d);
+      }
+      // Per coordinate, as solvePnPGeneric's own reprojectionError (what this error always was).
+      const double rms = std::sqrt(sum_sq / (2.0 * image.size()));
+      if (!std::isfinite(rms)) continue;
+      candidates.push_back({r, t, rms});
     }
   };
   solve(cv::SOLVEPNP_IPPE_SQUARE);

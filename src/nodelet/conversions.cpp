@@ -6,9 +6,12 @@
 #include <limits>
 
 #include <boost/make_shared.hpp>
+#include <image_geometry/pinhole_camera_model.h>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sensor_msgs/PointField.h>
+#include <sensor_msgs/distortion_models.h>
+#include <sensor_msgs/image_encodings.h>
 #include <tf2/LinearMath/Matrix3x3.h>
 #include <tf2/LinearMath/Quaternion.h>
 #include <tf2_geometry_msgs/tf2_geometry_msgs.h>
@@ -83,28 +86,78 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
 }
 
 CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size) {
-  if ((info.width != 0 || info.height != 0) &&
-      (static_cast<int>(info.width) != image_size.width || static_cast<int>(info.height) != image_size.height)) {
-    throw Error("camera_info is for a " + Size(info.width, info.height) + " image but the image is " +
-                Size(image_size.width, image_size.height));
+  image_geometry::PinholeCameraModel geometry;
+  try {
+    geometry.fromCameraInfo(info);
+  } catch (const std::exception& e) {  // image_geometry::Exception
+    throw Error(std::string("camera_info not usable: ") + e.what());
   }
+  return CameraModelFromInfo(geometry, use_projection, image_size);
+}
+
+CameraModel CameraModelFromInfo(const image_geometry::PinholeCameraModel& geometry, bool use_projection,
+                                const cv::Size& image_size) {
+  namespace models = sensor_msgs::distortion_models;
+  if (!geometry.initialized()) throw Error("no camera_info received yet");
+  const sensor_msgs::CameraInfo& info = geometry.cameraInfo();
+  // image_geometry reads binning 0 as 1 and an all-zero ROI as the whole sensor. K, D and P stay
+  // full-resolution; the pixel mapping places this image's pixels on the sensor.
+  const int binning_x = static_cast<int>(geometry.binningX()), binning_y = static_cast<int>(geometry.binningY());
+  const cv::Rect roi = geometry.rawRoi();
+  const cv::Size sensor = geometry.fullResolution();
+  const std::string layout = Size(sensor.width, sensor.height) + " sensor, roi " + std::to_string(roi.x) + "," +
+                             std::to_string(roi.y) + " " + Size(roi.width, roi.height) + ", binning " +
+                             Size(binning_x, binning_y);
+  if (sensor.area() > 0 && (roi.area() == 0 || (roi & cv::Rect(cv::Point(), sensor)) != roi)) {
+    throw Error("camera_info roi does not lie within the sensor (" + layout + ")");
+  }
+  if (roi.area() > 0) {
+    // What image_geometry's reducedResolution() gives for an unrectified ROI, without the
+    // rectification it would run when the ROI asks for do_rectify.
+    const cv::Size expected(roi.width / binning_x, roi.height / binning_y);
+    if (expected != image_size) {
+      throw Error("camera_info is for a " + Size(expected.width, expected.height) + " image (" + layout +
+                  ") but the image is " + Size(image_size.width, image_size.height));
+    }
+  } else if (roi.x != 0 || roi.y != 0) {
+    throw Error("camera_info roi has an offset but no size (" + layout + ")");
+  }
+
   const auto all_zero = [](const auto& values) {
     return std::all_of(values.begin(), values.end(), [](double v) { return v == 0.0; });
   };
+  const auto all_finite = [](const auto& values) {
+    return std::all_of(values.begin(), values.end(), [](double v) { return std::isfinite(v); });
+  };
   CameraModel camera;
+  const std::string& model = info.distortion_model;
   if (use_projection) {
     if (all_zero(info.P)) throw Error("camera_info P is all zero (uncalibrated camera?)");
-    camera = CameraModel::FromProjection(cv::Matx34d(info.P.data()));
+    if (!all_finite(info.P)) throw Error("camera_info P has a NaN or infinite entry");
+    camera = CameraModel::FromProjection(geometry.fullProjectionMatrix());
   } else {
     if (all_zero(info.K)) throw Error("camera_info K is all zero (uncalibrated camera?)");
-    const std::string& model = info.distortion_model;
-    if (!model.empty() && model != "plumb_bob" && model != "rational_polynomial" && !all_zero(info.D)) {
-      throw Error("camera_info distortion model '" + model +
-                  "' is not supported (plumb_bob, rational_polynomial); rectify the image and set ~rectified");
+    if (!all_finite(info.K)) throw Error("camera_info K has a NaN or infinite entry");
+    const cv::Matx33d& K = geometry.fullIntrinsicMatrix();
+    if (model == models::EQUIDISTANT) {
+      camera = CameraModel::FromFisheye(K, info.D);
+    } else if (model == models::PLUMB_BOB || model == models::RATIONAL_POLYNOMIAL || model.empty() ||
+               all_zero(info.D)) {
+      // Older drivers leave the model empty; OpenCV's pinhole model then reads D by its count.
+      camera = CameraModel::FromIntrinsics(K, info.D);
+    } else {
+      throw Error("camera_info distortion model '" + model + "' is not supported (" + models::PLUMB_BOB + ", " +
+                  models::RATIONAL_POLYNOMIAL + ", " + models::EQUIDISTANT +
+                  "); rectify the image and set ~rectified");
     }
-    camera = CameraModel::FromIntrinsics(cv::Matx33d(info.K.data()), info.D);
   }
-  camera.Validate();
+  camera.pixels = PixelMapping::FromBinningAndRoi(binning_x, binning_y, roi.tl());
+  try {
+    camera.Validate();
+  } catch (const Error& e) {
+    throw Error(std::string("camera_info (") + (use_projection ? "P" : model.empty() ? "K" : "K, " + model) +
+                "): " + e.what());
+  }
   return camera;
 }
 

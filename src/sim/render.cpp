@@ -17,12 +17,39 @@ namespace {
 
 constexpr double kDeg = CV_PI / 180.0;
 
+// A fisheye lens bends rays even with all-zero coefficients (r = f * theta).
 bool HasDistortion(const Camera& cam) {
-  return std::any_of(cam.dist.begin(), cam.dist.end(), [](double d) { return d != 0.0; });
+  return cam.fisheye ||
+         std::any_of(cam.dist.begin(), cam.dist.end(), [](double d) { return d != 0.0; });
 }
 
 cv::Mat DistMat(const Camera& cam) {
+  if (cam.fisheye) return cam.dist.empty() ? cv::Mat::zeros(4, 1, CV_64F) : cv::Mat(cam.dist, true);
   return HasDistortion(cam) ? cv::Mat(cam.dist, true) : cv::Mat();
+}
+
+// Image positions of camera-frame points moved by (rvec, tvec), through either lens model.
+std::vector<cv::Point2d> Project(const Camera& cam, const std::vector<cv::Point3d>& pts,
+                                 const cv::Vec3d& rvec, const cv::Vec3d& tvec) {
+  std::vector<cv::Point2d> img;
+  if (cam.fisheye)
+    cv::fisheye::projectPoints(pts, img, rvec, tvec, cam.K, DistMat(cam));
+  else
+    cv::projectPoints(pts, rvec, tvec, cam.K, DistMat(cam), img);
+  return img;
+}
+
+// Normalized rays (x, y) of pixel positions (CV_64FC2 in and out). The
+// pinhole inverse runs a fixed iteration count only (no EPS) so OpenCV skips
+// its per-iteration reprojection; 40 iterations converge far below 1e-6 px
+// for sane lenses. cv::fisheye solves theta by Newton's method to 1e-8 rad
+// (its criteria argument is newer than OpenCV 4.2).
+void Undistort(const Camera& cam, const cv::Mat& px, cv::Mat& rays) {
+  if (cam.fisheye)
+    cv::fisheye::undistortPoints(px, rays, cam.K, DistMat(cam));
+  else
+    cv::undistortPoints(px, rays, cam.K, DistMat(cam), cv::noArray(), cv::noArray(),
+                        cv::TermCriteria(cv::TermCriteria::COUNT, 40, 0));
 }
 
 // Normalized (undistorted) rays for pixel positions. Without distortion the
@@ -40,18 +67,14 @@ class RayMap {
     gw_ = region.width + 2;
     gh_ = region.height + 2;
     grid_.resize(static_cast<size_t>(gw_) * gh_);
-    const cv::Mat dist = DistMat(cam);
-    // Rows are independent, so chunks run in parallel. Fixed-point count only
-    // (no EPS) so OpenCV skips its per-iteration reprojection; 40 iterations
-    // converge far below 1e-6 px for sane lenses.
+    // Rows are independent, so chunks run in parallel.
     cv::parallel_for_(cv::Range(0, gh_), [&](const cv::Range& rows) {
       std::vector<cv::Point2d> px;
       for (int j = rows.start; j < rows.end; ++j)
         for (int i = 0; i < gw_; ++i) px.emplace_back(x0_ + i, y0_ + j);
       cv::Point2d* out = &grid_[static_cast<size_t>(rows.start) * gw_];
       cv::Mat dst(static_cast<int>(px.size()), 1, CV_64FC2, out);
-      cv::undistortPoints(px, dst, cam.K, dist, cv::noArray(), cv::noArray(),
-                          cv::TermCriteria(cv::TermCriteria::COUNT, 40, 0));
+      Undistort(cam, cv::Mat(px), dst);
       CV_Assert(dst.ptr<cv::Point2d>() == out);  // written in place, not reallocated
     });
   }
@@ -107,9 +130,10 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits, 
 
   // Bounding box of the outer quad, clipped to the half-space in front of the
   // camera so markers partly behind it stay cheap, and sampled along its edges
-  // because edges bow under distortion. With distortion, points far outside
-  // the field of view project meaninglessly (the polynomial folds back), so
-  // such markers fall back to the whole image.
+  // because edges bow under distortion (a fisheye's strongly). With pinhole
+  // distortion, points far outside the field of view project meaninglessly
+  // (the polynomial folds back), so such markers fall back to the whole image;
+  // an equidistant lens maps the whole half-space in front monotonically.
   const cv::Rect full(cv::Point(0, 0), cam.size);
   constexpr double kNear = 1e-4;
   const double h = p.half_outer;
@@ -125,7 +149,7 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits, 
   }
   if (poly.empty()) return p;  // entirely behind the camera: empty box
   const bool distorted = HasDistortion(cam);
-  const int per_edge = distorted ? 16 : 1;
+  const int per_edge = cam.fisheye ? 64 : distorted ? 16 : 1;
   const double max_tan =
       4.0 * std::max(cam.size.width / cam.K(0, 0), cam.size.height / cam.K(1, 1));
   std::vector<cv::Point3d> pts;
@@ -133,14 +157,13 @@ PreparedMarker Prepare(const Camera& cam, const Marker& m, const cv::Mat& bits, 
     for (int i = 0; i < per_edge; ++i) {
       const cv::Vec3d q =
           poly[e] + (poly[(e + 1) % poly.size()] - poly[e]) * (double(i) / per_edge);
-      if (distorted && std::hypot(q[0], q[1]) > max_tan * q[2]) {
+      if (distorted && !cam.fisheye && std::hypot(q[0], q[1]) > max_tan * q[2]) {
         p.box = full;
         return p;
       }
       pts.emplace_back(q[0], q[1], q[2]);
     }
-  std::vector<cv::Point2d> img;
-  cv::projectPoints(pts, cv::Vec3d(), cv::Vec3d(), cam.K, DistMat(cam), img);
+  const std::vector<cv::Point2d> img = Project(cam, pts, cv::Vec3d(), cv::Vec3d());
   double x0 = img[0].x, y0 = img[0].y, x1 = x0, y1 = y0;
   for (const auto& q : img) {
     x0 = std::min(x0, q.x), x1 = std::max(x1, q.x);
@@ -371,6 +394,17 @@ Camera MakeCamera(cv::Size size, double hfov_deg) {
       cv::Matx33d(f, 0, 0.5 * (size.width - 1), 0, f, 0.5 * (size.height - 1), 0, 0, 1), {}, size};
 }
 
+Camera MakeFisheyeCamera(cv::Size size, double hfov_deg, const std::vector<double>& k) {
+  CV_Assert(k.size() == 4 && hfov_deg > 0 && hfov_deg < 180);
+  const double t = 0.5 * hfov_deg * kDeg, t2 = t * t;
+  const double theta_d = t * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))));
+  const double f = 0.5 * size.width / theta_d;
+  Camera cam{cv::Matx33d(f, 0, 0.5 * (size.width - 1), 0, f, 0.5 * (size.height - 1), 0, 0, 1), k,
+             size};
+  cam.fisheye = true;
+  return cam;
+}
+
 std::array<cv::Point3d, 4> MarkerCorners3d(double side) {
   const double h = side / 2;
   return {cv::Point3d(-h, h, 0), cv::Point3d(h, h, 0), cv::Point3d(h, -h, 0),
@@ -379,16 +413,13 @@ std::array<cv::Point3d, 4> MarkerCorners3d(double side) {
 
 std::array<cv::Point2f, 4> ProjectCorners(const Camera& cam, const Marker& m) {
   const auto obj = MarkerCorners3d(m.side);
-  std::vector<cv::Point2d> img;
-  cv::projectPoints(std::vector<cv::Point3d>(obj.begin(), obj.end()), m.rvec, m.tvec, cam.K,
-                    DistMat(cam), img);
+  const std::vector<cv::Point2d> img =
+      Project(cam, std::vector<cv::Point3d>(obj.begin(), obj.end()), m.rvec, m.tvec);
   return {cv::Point2f(img[0]), cv::Point2f(img[1]), cv::Point2f(img[2]), cv::Point2f(img[3])};
 }
 
 cv::Point2f ProjectCentre(const Camera& cam, const Marker& m) {
-  std::vector<cv::Point2d> img;
-  cv::projectPoints(std::vector<cv::Point3d>{{0, 0, 0}}, m.rvec, m.tvec, cam.K, DistMat(cam), img);
-  return cv::Point2f(img[0]);
+  return cv::Point2f(Project(cam, {{0, 0, 0}}, m.rvec, m.tvec)[0]);
 }
 
 cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers, const RenderOptions& opt,
@@ -572,7 +603,14 @@ Marker RandomMarker(cv::RNG& rng, const Camera& cam, int id, double side, double
     const double zc = rng.uniform(min_range, max_range);
     const double u = rng.uniform(0.0, double(cam.size.width));
     const double v = rng.uniform(0.0, double(cam.size.height));
-    const cv::Vec3d ray = cam.K.inv() * cv::Vec3d(u, v, 1.0);
+    // K alone spreads a pinhole camera's markers well enough (and keeps the scenes the tests were
+    // tuned on); a fisheye's K would crowd them into the middle third of the image.
+    cv::Vec3d ray = cam.K.inv() * cv::Vec3d(u, v, 1.0);
+    if (cam.fisheye) {
+      cv::Mat xy;
+      Undistort(cam, cv::Mat(std::vector<cv::Point2d>{{u, v}}), xy);
+      ray = cv::Vec3d(xy.at<cv::Point2d>(0).x, xy.at<cv::Point2d>(0).y, 1.0);
+    }
     // Uniform in angle, not solid angle, so strong obliques are well represented.
     const double tilt = rng.uniform(0.0, max_tilt_deg), axis = rng.uniform(0.0, 360.0);
     const Marker m = FacingRay(id, side, ray * zc, tilt, axis, rng.uniform(0.0, 360.0));

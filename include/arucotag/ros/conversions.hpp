@@ -9,6 +9,7 @@
 #include <geometry_msgs/Pose.h>
 #include <geometry_msgs/Transform.h>
 #include <geometry_msgs/TransformStamped.h>
+#include <image_geometry/pinhole_camera_model.h>
 #include <opencv2/core.hpp>
 #include <sensor_msgs/CameraInfo.h>
 #include <sensor_msgs/Image.h>
@@ -33,11 +34,20 @@ ArucoTagMsg ToMessage(const ArucoTag& tag);
 ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
                         const geometry_msgs::TransformStamped* to_output = nullptr);
 
-/// Intrinsics from a camera_info. use_projection: take P's left 3x3 block and no distortion (for
-/// rectified images); otherwise K and D (plumb_bob or rational_polynomial). Throws when the matrix
-/// used is all zero (an uncalibrated driver), the distortion model is not one OpenCV's pinhole
-/// model accepts, or the info's size disagrees with `image_size` (when the info states one).
+/// The camera model of an image from its camera_info, read through image_geometry. use_projection:
+/// P's left 3x3 block and no distortion (for rectified images); otherwise K and D, plumb_bob,
+/// rational_polynomial or equidistant (fisheye). K, D and P stay the full-resolution calibration;
+/// binning and ROI become the model's pixel mapping (see PixelMapping::FromBinningAndRoi), so
+/// poses from a binned or cropped image are full-resolution poses. Throws arucotag::Error when the
+/// matrix used is all zero (an uncalibrated driver) or has a NaN/infinite entry, fx/fy are not
+/// positive, the distortion model is unknown (with non-zero D; an empty name reads D as OpenCV's
+/// pinhole model) or has the wrong coefficient count, the ROI lies outside the sensor, or
+/// `image_size` differs from the ROI's size divided by the binning (not checked when the info
+/// states no size).
 CameraModel CameraModelFromInfo(const sensor_msgs::CameraInfo& info, bool use_projection, const cv::Size& image_size);
+/// The same from an image_geometry model a nodelet keeps updated with fromCameraInfo().
+CameraModel CameraModelFromInfo(const image_geometry::PinholeCameraModel& geometry, bool use_projection,
+                                const cv::Size& image_size);
 
 /// An 8- or 16-bit image as a message with the given encoding and header (the pixels are copied).
 sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& encoding,
