@@ -112,6 +112,14 @@ def main():
         lines.append(f"- (d): {n.get('note', '')}. Against (c) run alongside it in the same process: "
                      f"{min(ratios):.2f}x to {max(ratios):.2f}x (median over sets "
                      f"{sorted(ratios)[len(ratios) // 2]:.2f}x).")
+        stream = n.get("stream_30hz")
+        if stream and stream.get("answered"):
+            lines.append(f"- (d) at 30 Hz (images on the clock, camera_info once, 300 frames of the sequence): "
+                         f"{stream['answered']} of {stream['sent']} answered; latency publish to tags median "
+                         f"{stream['latency_median_ms']:.2f} ms, p99 {stream['latency_p99_ms']:.2f} ms; the core alone "
+                         f"on the same frames median {stream['core_median_ms']:.2f} ms, p99 {stream['core_p99_ms']:.2f} ms "
+                         f"({stream['latency_median_ms'] / stream['core_median_ms']:.2f}x, "
+                         f"{stream['latency_p99_ms'] / stream['core_p99_ms']:.2f}x).")
     elif not any("d" in s["methods"] for s in results["sets"]):
         lines.append("- (d) nodelet: not measured in this run (see bench/run.sh output).")
     if worst_pose >= TARGET_POSE_US:
