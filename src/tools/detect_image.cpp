@@ -52,6 +52,9 @@ arucotag::CameraModel ReadCamera(const std::string& path) {
   if (!camera_calibration_parsers::readCalibration(path, name, info)) {
     throw arucotag::Error("cannot read camera file '" + path + "' as OpenCV or ROS calibration");
   }
+  if (info.distortion_model == "equidistant") {  // fisheye: k1..k4 of cv::fisheye
+    return arucotag::CameraModel::FromFisheye(cv::Matx33d(info.K.data()), info.D);
+  }
   return arucotag::CameraModel::FromIntrinsics(cv::Matx33d(info.K.data()), info.D);
 }
 
