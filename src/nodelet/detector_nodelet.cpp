@@ -444,6 +444,11 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
     ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
   }
   for (auto& tag : tags) Measure(tag, camera, points, size);
+  if (!points.empty() && !tags.empty() &&
+      std::none_of(tags.begin(), tags.end(), [](const ArucoTag& tag) { return tag.cloud.valid; })) {
+    Warn("cloud without depth", "the point cloud has too few finite points on every tag (NaN or inf there: no "
+                                "depth, or the cloud is all NaN): poses from PnP alone");
+  }
   const ArucoTagArray array = ToMessage(tags, header, to_output ? &*to_output : nullptr);
   Publish(image, array, tags);
 
