@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 export ARUCOTAG_BUILD ?= $(CURDIR)/build
 
-.PHONY: deps build test demo bench clean
+.PHONY: deps build test demo bench soak clean
 
 deps:
 	bash scripts/install_deps.sh
@@ -19,6 +19,11 @@ demo: build
 # Detection benchmark: prints the table and writes $(ARUCOTAG_BUILD)/bench/results.{json,md}.
 bench: build
 	bash bench/run.sh
+
+# Soak: SOAK_SECONDS (600) at 30 Hz into the nodelet in a manager, then SOAK_CYCLES (100) load/unload
+# cycles; prints RSS growth, frames answered, latency, CPU per frame; fails past the budgets.
+soak: build
+	bash scripts/soak.sh
 
 clean:
 	rm -rf $(ARUCOTAG_BUILD)

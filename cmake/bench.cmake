@@ -14,3 +14,13 @@ if(TARGET arucotag_nodelet)
   # It loads the plugin at run time; build it with the benchmark.
   add_dependencies(bench_nodelet arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
 endif()
+
+# `make soak` (scripts/soak.sh): the nodelet for SOAK_SECONDS at 30 Hz in a real manager, then 100
+# load/unload cycles; fails past its memory, frame and survival budgets.
+if(TARGET arucotag_nodelet)
+  add_executable(soak test/soak/soak.cpp)
+  target_include_directories(soak PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(soak SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(soak arucotag_core ${catkin_LIBRARIES})
+  add_dependencies(soak arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+endif()
