@@ -33,19 +33,25 @@ from sensor_msgs.msg import Image
 
 SOURCES = {0: "none", 1: "pnp", 2: "point_cloud", 3: "fused"}
 VISIBLE_PX = 20.0  # px (sqrt of the marker's image area): smaller markers are not required
+FLIP_DEG = 10.0    # a pose this far off in rotation took the wrong planar solution (or worse)
+NEAR_M = 5.0       # m, the near range bin of the rotation gate (far: up to 15 m)
 
 
 class Thresholds:
     """What a marker must achieve over its visible frames (the foundation issue's accuracy, plus recall)."""
 
     def __init__(self, min_px=VISIBLE_PX, max_obliquity_deg=70.0, min_recall=0.90, max_distance_error=0.005,
-                 max_yaw_error_deg=1.0, min_frames=5):
+                 max_yaw_error_deg=1.0, min_frames=5, max_rotation_near_deg=1.0, max_rotation_far_deg=3.0,
+                 max_flips=0):
         self.min_px = min_px                          # px, sqrt of the marker's image area to count as visible
         self.max_obliquity_deg = max_obliquity_deg    # deg, more oblique views are not required (beyond the core's 60)
         self.min_recall = min_recall                  # share of visible frames with a matching detection
         self.max_distance_error = max_distance_error  # median |distance - true| / true distance
         self.max_yaw_error_deg = max_yaw_error_deg    # median |yaw - true yaw|, deg
         self.min_frames = min_frames                  # markers visible in fewer frames are reported, not judged
+        self.max_rotation_near_deg = max_rotation_near_deg  # median rotation error of detections up to 5 m, deg
+        self.max_rotation_far_deg = max_rotation_far_deg    # ... of detections 5-15 m away, deg
+        self.max_flips = max_flips                    # detections whose rotation is off by more than FLIP_DEG
 
 
 class Replay:
@@ -240,6 +246,9 @@ class MarkerScore:
         self.sources = {}
         self.failures = []
 
+    def flips(self):
+        return sum(1 for e in self.errors if e[3] > FLIP_DEG)
+
 
 def score(replay, thresholds):
     """Per-marker statistics and the list of threshold failures."""
@@ -291,14 +300,23 @@ def score(replay, thresholds):
             m.failures.append("median distance error %.2f%% > %.2f%%" % (100 * rel, 100 * thresholds.max_distance_error))
         if yaw > thresholds.max_yaw_error_deg:
             m.failures.append("median yaw error %.2f deg > %.2f deg" % (yaw, thresholds.max_yaw_error_deg))
+        for lo, hi, bound in ((0.0, NEAR_M, thresholds.max_rotation_near_deg),
+                              (NEAR_M, 15.0, thresholds.max_rotation_far_deg)):
+            rot = [e[3] for e in m.errors if lo < e[4] <= hi]
+            if rot and statistics.median(rot) > bound:
+                m.failures.append("median rotation error %.2f deg at %g-%g m > %.1f deg"
+                                  % (statistics.median(rot), lo, hi, bound))
+        if m.flips() > thresholds.max_flips:
+            m.failures.append("%d flipped poses (rotation error > %.0f deg) > %d" % (m.flips(), FLIP_DEG,
+                                                                                      thresholds.max_flips))
     return markers, false_positives, missing
 
 
 def format_table(replay, markers, false_positives, missing, thresholds):
     lines = []
-    header = ("%-9s %3s %13s %7s %6s  %-17s %-26s %-13s %-9s %s"
+    header = ("%-9s %3s %13s %7s %6s  %-17s %-26s %-13s %-21s %s"
               % ("marker", "id", "seen/visible", "recall", "small", "dist err median", "dist err worst (range)",
-                 "yaw err deg", "rot err", "pose source"))
+                 "yaw err deg", "rot err <5m/>5m", "pose source"))
     lines.append(header)
     lines.append("-" * len(header))
     for name in sorted(markers):
@@ -310,11 +328,13 @@ def format_table(replay, markers, false_positives, missing, thresholds):
             worst = max(m.errors, key=lambda e: e[0])
             yaw_med = statistics.median(e[2] for e in m.errors)
             yaw_max = max(e[2] for e in m.errors)
-            rot = statistics.median(e[3] for e in m.errors)
+            near = [e[3] for e in m.errors if e[4] <= NEAR_M]
+            far = [e[3] for e in m.errors if e[4] > NEAR_M]
             dist = "%.3f m %5.2f%%" % (med, 100 * rel)
             dist_worst = "%.3f m %5.2f%% (%4.1f m)" % (worst[0], 100 * worst[1], worst[4])
             yaw = "%.2f / %.2f" % (yaw_med, yaw_max)
-            rot = "%5.1f deg" % rot
+            rot = "%s / %s, %d flips" % ("%.1f" % statistics.median(near) if near else "-",
+                                          "%.1f" % statistics.median(far) if far else "-", m.flips())
         else:
             dist = dist_worst = yaw = rot = "-"
         total = sum(m.sources.values())
@@ -322,13 +342,14 @@ def format_table(replay, markers, false_positives, missing, thresholds):
         verdict = "" if m.visible >= thresholds.min_frames else "  (too few visible frames to judge)"
         if m.failures:
             verdict = "  FAIL: " + "; ".join(m.failures)
-        lines.append("%-9s %3d %13s %7s %6d  %-17s %-26s %-13s %-9s %s%s"
+        lines.append("%-9s %3d %13s %7s %6d  %-17s %-26s %-13s %-21s %s%s"
                      % (name, m.id, "%d/%d" % (m.seen, m.visible), recall, m.small_seen, dist, dist_worst, yaw, rot,
                         sources, verdict))
     lines.append("")
     lines.append("visible = whole in the image, >= %.0f px (sqrt of its area), <= %.0f deg off head-on; small = "
-                 "detections while not visible (too small, cut off or grazing); yaw err = median / worst; errors over "
-                 "visible frames" % (thresholds.min_px, thresholds.max_obliquity_deg))
+                 "detections while not visible (too small, cut off or grazing); yaw err = median / worst; rot err = median "
+                 "rotation error (deg) up to 5 m / 5-15 m, flips = rotation error > %.0f deg; errors over "
+                 "visible frames" % (thresholds.min_px, thresholds.max_obliquity_deg, FLIP_DEG))
     lines.append("frames: %d images in the bag, %d truth, %d tag arrays received, %d truth frames without tags; "
                  "%d detections matching no marker (%s); replay took %.0f s"
                  % (replay.images, len(replay.truth), len(replay.tags), len(missing), len(false_positives),
@@ -430,8 +451,10 @@ def main():
         print("FAIL: %d of %d judged markers below the thresholds" % (len(failed), len(judged)))
         return 1
     print("PASS: %d markers judged; recall >= %.0f%%, median distance error <= %.2f%% of range, median yaw error "
-          "<= %.2f deg" % (len(judged), 100 * thresholds.min_recall, 100 * thresholds.max_distance_error,
-                          thresholds.max_yaw_error_deg))
+          "<= %.2f deg, median rotation error <= %.1f deg to 5 m and <= %.1f deg to 15 m, flipped poses <= %d"
+          % (len(judged), 100 * thresholds.min_recall, 100 * thresholds.max_distance_error,
+             thresholds.max_yaw_error_deg, thresholds.max_rotation_near_deg, thresholds.max_rotation_far_deg,
+             thresholds.max_flips))
     return 0
 
 

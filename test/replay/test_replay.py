@@ -178,6 +178,11 @@ class ReplayTest(unittest.TestCase):
             self.assertLessEqual(yaws[len(yaws) // 2], 1.0, "%s median yaw error (deg)" % m.name)
             # Fused on the images that have a cloud close enough in stamp, PnP on the others.
             self.assertTrue(set(m.sources) <= {"fused", "pnp"}, m.sources)
+        # Rotation: the gates (1 deg to 5 m, 3 deg beyond) and no flipped pose.
+        for m, limit in ((post_a, 1.0), (post_c, 1.0), (stake_3, 3.0)):
+            rotations = sorted(e[3] for e in m.errors)
+            self.assertLessEqual(rotations[len(rotations) // 2], limit, "%s median rotation error (deg)" % m.name)
+            self.assertEqual(m.flips(), 0, "%s flipped poses" % m.name)
         # Close to the post the distance is within a centimetre.
         self.assertLessEqual(max(e[0] for e in post_a.errors), 0.02)
         self.assertEqual(self.false_positives, [])
