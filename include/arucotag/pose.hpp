@@ -96,6 +96,17 @@ struct CloudPoseOptions {
 bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
                                 const CloudPoseOptions& options = {});
 
+/// Which of the tag's two PnP solutions (0 = the corners' pick) the fused pose takes. Each
+/// measurement weighs in with a chi-square difference between the solutions under its own noise:
+/// the corners' from the two reprojection errors (corner noise estimated from the better one's
+/// residuals, at least 0.05 px), the cloud's from the angles between its plane normal and each
+/// solution's, over the normal's standard deviation (plane residuals and point count, capped for
+/// correlated stereo noise, plus 5 degrees of systematic error in quadrature). The cloud overrides the corners only when its evidence exceeds theirs
+/// by 9 (three sigma), the normals differ by 2 degrees or more, and the plane lies within 15 degrees
+/// of the solution it favours (further from both, it is not this face). 0 without a plane or a
+/// second solution.
+int FusedChoice(const ArucoTag& tag);
+
 /// Sets the tag's pose (rvec, tvec, distance, yaw, pose_source, reprojection_error,
 /// depth_disagreement) from tag.pnp and tag.cloud, preferring `wanted`:
 /// - kPnp: the PnP solution with the lower reprojection error.

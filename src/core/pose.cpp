@@ -358,6 +358,66 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
   return true;
 }
 
+namespace {
+
+// Plane-fit residuals are correlated in patches (stereo block matching): no more independent
+// points than this count towards the normal's precision.
+constexpr double kMaxIndependentPoints = 25.0;
+// Corner noise never assumed below this (px): the refinements' own floor.
+constexpr double kMinCornerSigma = 0.05;
+// The cloud overrides the corners when its evidence for the other solution exceeds theirs for the
+// pick by this much (a chi-square difference: 9 = three standard deviations)...
+constexpr double kDecisiveEvidence = 9.0;
+// ...and the two normals it compares differ from the cloud's by at least this much.
+constexpr double kMinNormalMargin = 2.0 * CV_PI / 180.0;
+// A real cloud's normal is off by more than its noise says: blocks averaged across the marker's
+// edge, a cloud a frame older than the image on a turning rover, calibration. This much (rad) is
+// added in quadrature. Without it the sample recording's fused poses flipped 13 times where PnP
+// alone flipped none.
+constexpr double kNormalSystematic = 5.0 * CV_PI / 180.0;
+// A plane further than this from both solutions is not this marker's face (the ground or a post
+// behind a small marker, a cloud misregistered by motion): it says nothing about the choice.
+constexpr double kMaxPlaneDisagreement = 15.0 * CV_PI / 180.0;
+
+// Standard deviation (rad) of the fitted plane's normal: depth noise (the plane residuals) over the
+// lever arm of the points (uniform over the shrunk square: sd side / sqrt(12) per axis), plus the
+// systematic part.
+double NormalSigma(const ArucoTag& tag, const CloudPoseOptions& options) {
+  const double extent = tag.side_length * (1.0 - options.shrink) / std::sqrt(12.0);
+  const double n = std::min<double>(tag.cloud.points, kMaxIndependentPoints);
+  if (!std::isfinite(tag.cloud.plane_rms) || extent <= 0.0 || n < 3.0) return CV_PI;
+  const double noise = std::max(tag.cloud.plane_rms, 1e-4) / (extent * std::sqrt(n));
+  return std::hypot(noise, kNormalSystematic);
+}
+
+}  // namespace
+
+int FusedChoice(const ArucoTag& tag) {
+  // IPPE's two solutions differ mainly by a reflection of the face normal about the line of sight.
+  // Each measurement's evidence is a chi-square difference between the two solutions under its own
+  // noise: the corners' from the reprojection errors (8 residuals, 6 unknowns: the right solution's
+  // RMS is about half the corner noise), the cloud's from the angles between its normal and each
+  // solution's. The cloud overrides the corners' pick only when its evidence clearly outweighs
+  // theirs, so a noisy or stale cloud does not flip a good PnP pose, and a confident plane fixes
+  // an ambiguous one.
+  if (!tag.cloud.has_normal || tag.pnp.solutions < 2) return 0;
+  const double e0 = tag.pnp.rms[0], e1 = tag.pnp.rms[1];
+  if (!std::isfinite(e0) || !std::isfinite(e1)) return 0;
+  const double corner_sigma = std::max(2.0 * std::min(e0, e1), kMinCornerSigma);
+  const double corners = 8.0 * (e1 * e1 - e0 * e0) / (corner_sigma * corner_sigma);
+  double angle[2];
+  for (int i = 0; i < 2; ++i) {
+    cv::Matx33d r;
+    cv::Rodrigues(tag.pnp.rvec[i], r);
+    const double c = cv::Vec3d(r(0, 2), r(1, 2), r(2, 2)).dot(tag.cloud.normal);
+    angle[i] = std::acos(std::max(-1.0, std::min(1.0, c)));
+  }
+  if (angle[0] - angle[1] < kMinNormalMargin || angle[1] > kMaxPlaneDisagreement) return 0;
+  const double sigma = NormalSigma(tag, CloudPoseOptions());
+  const double cloud = (angle[0] * angle[0] - angle[1] * angle[1]) / (sigma * sigma);
+  return cloud - corners > kDecisiveEvidence ? 1 : 0;
+}
+
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
   const bool pnp = tag.pnp.valid && tag.pnp.solutions > 0;
   const bool cloud = tag.cloud.valid;
@@ -394,18 +454,7 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       break;
     }
     case PoseSource::kFused: {
-      // IPPE's two solutions differ mainly by a reflection of the face normal about the line of
-      // sight; the cloud's plane says which one is real even when the corners cannot.
-      int best = 0;
-      if (tag.cloud.has_normal && tag.pnp.solutions == 2) {
-        double agreement[2];
-        for (int i = 0; i < 2; ++i) {
-          cv::Matx33d r;
-          cv::Rodrigues(tag.pnp.rvec[i], r);
-          agreement[i] = cv::Vec3d(r(0, 2), r(1, 2), r(2, 2)).dot(tag.cloud.normal);
-        }
-        best = agreement[1] > agreement[0] ? 1 : 0;
-      }
+      const int best = FusedChoice(tag);
       tag.rvec = tag.pnp.rvec[best];
       tag.tvec = tag.pnp.tvec[best];
       tag.reprojection_error = tag.pnp.rms[best];

@@ -131,5 +131,61 @@ TEST(PointCloud, FusedPicksTheIppeSolutionTheCloudAgreesWith) {
   EXPECT_FALSE(s.tag.HasPose());
 }
 
+// Two IPPE-like solutions 40 degrees apart and a cloud plane, to pin what FusedChoice weighs.
+struct Choice {
+  ArucoTag tag;
+  cv::Vec3d normal[2];
+  Choice(double e0, double e1) {
+    tag.side_length = 0.15;
+    tag.pnp.valid = true;
+    tag.pnp.solutions = 2;
+    // Facing the camera (marker z towards it), turned +-20 degrees about the vertical.
+    for (int i = 0; i < 2; ++i) {
+      const double a = (i == 0 ? 20.0 : -20.0) * CV_PI / 180.0;
+      const cv::Matx33d turn(std::cos(a), 0, std::sin(a), 0, 1, 0, -std::sin(a), 0, std::cos(a));
+      cv::Rodrigues(turn * cv::Matx33d(1, 0, 0, 0, -1, 0, 0, 0, -1), tag.pnp.rvec[i]);
+    }
+    tag.pnp.tvec = {cv::Vec3d(0.0, 0.0, 6.0), cv::Vec3d(0.0, 0.0, 6.0)};
+    tag.pnp.rms = {e0, e1};
+    for (int i = 0; i < 2; ++i) {
+      cv::Matx33d r;
+      cv::Rodrigues(tag.pnp.rvec[i], r);
+      normal[i] = cv::Vec3d(r(0, 2), r(1, 2), r(2, 2));
+    }
+    tag.cloud.valid = tag.cloud.has_normal = true;
+    tag.cloud.points = 200;
+    tag.cloud.plane_rms = 0.002;
+  }
+};
+
+TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
+  // Ambiguous corners (0.030 vs 0.032 px), a clean plane on solution 1: the cloud decides.
+  Choice ambiguous(0.030, 0.032);
+  ambiguous.tag.cloud.normal = ambiguous.normal[1];
+  EXPECT_EQ(FusedChoice(ambiguous.tag), 1);
+
+  // The same plane, but the corners are decisive (the other solution reprojects 10x worse).
+  Choice decisive(0.02, 0.2);
+  decisive.tag.cloud.normal = decisive.normal[1];
+  EXPECT_EQ(FusedChoice(decisive.tag), 0) << "a plane 40 degrees off must not overturn clear corners";
+
+  // A plane perpendicular to both (the ground behind a stake, a misregistered cloud): no say.
+  Choice ground(0.030, 0.032);
+  ground.tag.cloud.normal = cv::normalize(ground.normal[0].cross(ground.normal[1]));
+  EXPECT_EQ(FusedChoice(ground.tag), 0);
+
+  // A very noisy plane (6 cm residuals: a stereo camera at 10 m) near solution 1: not decisive.
+  Choice noisy(0.030, 0.032);
+  noisy.tag.cloud.normal = noisy.normal[1];
+  noisy.tag.cloud.plane_rms = 0.06;
+  EXPECT_EQ(FusedChoice(noisy.tag), 0);
+
+  // No plane, or one solution: the corners' pick.
+  Choice flat(0.030, 0.032);
+  flat.tag.cloud.normal = flat.normal[1];
+  flat.tag.cloud.has_normal = false;
+  EXPECT_EQ(FusedChoice(flat.tag), 0);
+}
+
 }  // namespace
 }  // namespace arucotag
