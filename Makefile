@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 export ARUCOTAG_BUILD ?= $(CURDIR)/build
 
-.PHONY: deps build test demo bench clean
+.PHONY: deps build test demo bench workspace-test clean
 
 deps:
 	bash scripts/install_deps.sh
@@ -19,6 +19,11 @@ demo: build
 # Detection benchmark: prints the table and writes $(ARUCOTAG_BUILD)/bench/results.{json,md}.
 bench: build
 	bash bench/run.sh
+
+# The README's catkin workspace commands in a fresh workspace under $TMPDIR (devel and install space,
+# run_tests); JUnit XML into $(ARUCOTAG_BUILD)/test_results/workspace. Needs no build here.
+workspace-test: deps
+	bash scripts/workspace_test.sh
 
 clean:
 	rm -rf $(ARUCOTAG_BUILD)
