@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 export ARUCOTAG_BUILD ?= $(CURDIR)/build
 
-.PHONY: deps build test demo bench soak clean
+.PHONY: deps build test demo bench soak workspace-test clean
 
 deps:
 	bash scripts/install_deps.sh
@@ -24,6 +24,11 @@ bench: build
 # cycles; prints RSS growth, frames answered, latency, CPU per frame; fails past the budgets.
 soak: build
 	bash scripts/soak.sh
+
+# The README's catkin workspace commands in a fresh workspace under $TMPDIR (devel and install space,
+# run_tests); JUnit XML into $(ARUCOTAG_BUILD)/test_results/workspace. Needs no build here.
+workspace-test: deps
+	bash scripts/workspace_test.sh
 
 clean:
 	rm -rf $(ARUCOTAG_BUILD)

@@ -7,7 +7,7 @@
 # default 8; the 100-frame sequence gets half), BENCH_THREADS (OpenCV threads, default all).
 set -euo pipefail
 source "$(dirname "$0")/../scripts/env.sh"
-BIN="${ARUCOTAG_BUILD}/devel/lib/arucotag"
+BIN="${ARUCOTAG_DEVEL}/lib/arucotag"
 OUT="${ARUCOTAG_BUILD}/bench"
 mkdir -p "${OUT}/frames" "${ROS_LOG_DIR}"
 FRAMES="${BENCH_FRAMES:-6}"

@@ -20,11 +20,15 @@ target_link_libraries(replay_pacer ${catkin_LIBRARIES})
 add_dependencies(replay_pacer ${PROJECT_NAME}_generate_messages_cpp)
 install(TARGETS replay_pacer RUNTIME DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATION})
 
+# Sourcing the devel space sets ARUCOTAG_SAMPLE_BAG (replay.launch's default bag) to this build
+# folder's sample; an install space has no sample, so no hook there.
+catkin_add_env_hooks(50.arucotag_sample SHELLS sh DIRECTORY ${PROJECT_SOURCE_DIR}/cmake SKIP_INSTALL)
+
 if(CATKIN_ENABLE_TESTING)
   find_package(rostest REQUIRED)
   # A 3 s, 5 Hz excerpt of the sample (the post at 2-3 m, two faces in view; 15 jpeg images, 5
-  # clouds): 7 MB in the build folder, made when the tests are built, never committed.
-  set(ARUCOTAG_REPLAY_TEST_BAG ${CMAKE_BINARY_DIR}/replay_test/short.bag)  # also in the .test files below
+  # clouds): 7 MB in the package's build folder, made when the tests are built, never committed.
+  set(ARUCOTAG_REPLAY_TEST_BAG ${PROJECT_BINARY_DIR}/replay_test/short.bag)  # also in the .test files below
   add_custom_command(OUTPUT ${ARUCOTAG_REPLAY_TEST_BAG}
     COMMAND make_sample_bag --output ${ARUCOTAG_REPLAY_TEST_BAG} --start 8 --duration 3 --rate 5
     DEPENDS make_sample_bag
@@ -33,7 +37,7 @@ if(CATKIN_ENABLE_TESTING)
   add_dependencies(tests replay_test_bag replay_pacer)
 
   # The .test files get the paths baked in, so the test names stay free of build paths.
-  set(ARUCOTAG_REPLAY_TEST_DIR ${CMAKE_BINARY_DIR}/replay_test)
+  set(ARUCOTAG_REPLAY_TEST_DIR ${PROJECT_BINARY_DIR}/replay_test)
   set(ARUCOTAG_DEVEL_PYTHON ${CATKIN_DEVEL_PREFIX}/${CATKIN_GLOBAL_PYTHON_DESTINATION})
   set(_replay_test_deps replay_test_bag replay_pacer arucotag_nodelet ${PROJECT_NAME}_generate_messages_py)
   foreach(name replay rviz)

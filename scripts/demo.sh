@@ -14,7 +14,7 @@ arucotag_source_devel
 
 OUT="${ARUCOTAG_DEMO_OUT:-${ARUCOTAG_SRC}/output/demo}"
 BAG="${ARUCOTAG_BUILD}/sample/sample.bag"
-GENERATOR="${ARUCOTAG_BUILD}/devel/lib/arucotag/make_sample_bag"
+GENERATOR="${ARUCOTAG_DEVEL}/lib/arucotag/make_sample_bag"
 PARAMS="${ARUCOTAG_DEMO_PARAMS:-{\}}"
 
 # A sample older than the generator may show another scene: make it again.

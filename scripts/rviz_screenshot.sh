@@ -58,7 +58,8 @@ for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
 # rviz's overlay display has subscribed. rviz 1.14 under Xvfb very rarely aborts while starting
 # (a heap error inside rviz): one more try then, reported on stderr.
 start_replay() {
-  roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
+  # The loops below read roslaunch's log as it runs: Python must not buffer it until exit.
+  PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
     rate_control:=true quiet:=true paused:=true > "${LOG}" 2>&1 &
   launch=$!
   pids=("${launch}" "${pids[@]}")

@@ -68,6 +68,7 @@ class RvizScreenshotTest(unittest.TestCase):
             self.assertNotIn(bad, self.log)
 
     def test_overlay_panel_shows_the_camera_image(self):
+        self.assertIsNotNone(self.image, self.result.stdout)
         # config/arucotag.rviz docks the overlay at the bottom left (600 px wide); the sample's
         # rusty ground and sky are red-dominated and textured, the "No Image" placeholder is not.
         (r, g, b), spread = region_stats(self.image, 10, 420, 590, 740)
@@ -75,6 +76,7 @@ class RvizScreenshotTest(unittest.TestCase):
         self.assertGreater(r, b + 15.0)
 
     def test_3d_view_is_drawn(self):
+        self.assertIsNotNone(self.image, self.result.stdout)
         # Right of the docks: the grid and TF axes on a dark background.
         (r, g, b), spread = region_stats(self.image, 640, 80, 1250, 760)
         self.assertLess((r + g + b) / 3.0, 120.0)
