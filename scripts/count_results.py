@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Counts test cases in catkin's JUnit XML and prints 'N passed, N failed' (', N skipped').
+"""Counts test cases in catkin's JUnit XML under the given folders and prints 'N passed, N failed'
+(', N skipped').
 
 Exit status 1 on any failure or error, or when no test case ran at all (a result file that exists
 but is empty of cases, such as a rostest that crashed before running, counts as a failure).
@@ -9,9 +10,9 @@ import sys
 import xml.etree.ElementTree as ET
 
 
-def main(root):
+def main(roots):
     passed = failed = skipped = 0
-    files = sorted(pathlib.Path(root).rglob("*.xml"))
+    files = sorted(f for root in roots for f in pathlib.Path(root).rglob("*.xml"))
     for path in files:
         try:
             tree = ET.parse(path)
@@ -40,4 +41,4 @@ def main(root):
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "build/test_results"))
+    sys.exit(main(sys.argv[1:] or ["build/test_results"]))
