@@ -524,7 +524,7 @@ DepthNoise::DepthNoise(double baseline_m, double disparity_sigma_px, double corr
 
 // Stereolabs' ZED 2 datasheet gives a 120 mm baseline and depth accuracy "< 1% up to 3 m, < 5% up
 // to 15 m". With its HD720 focal length (110 deg wide over 1280 px, f ~ 450 px) both bounds work out
-// to sigma_d ~ 0.18 px; as they are upper bounds, 0.15 px is taken (the issue's 0.1-0.3 px range).
+// to sigma_d ~ 0.18 px; as they are upper bounds, 0.15 px is taken (block matching is 0.1-0.3 px).
 // Passive stereo: no projector, so featureless patches give no depth. The correlation length and
 // fattening stand for SGM's smoothing and half a matching window; no published figure.
 DepthNoise DepthNoise::Zed2() { return DepthNoise(0.12, 0.15, 5.0, 3.0, 1.5); }
@@ -532,7 +532,7 @@ DepthNoise DepthNoise::Zed2() { return DepthNoise(0.12, 0.15, 5.0, 3.0, 1.5); }
 // Intel's D400 tuning white paper ("Best-Known-Methods for Tuning Intel RealSense D400 Depth
 // Cameras") writes depth RMS error = z^2 * subpixel / (f * B) with a subpixel RMS of about 0.08 px
 // on a well-textured target (0.1 at worst); the D435 baseline is 50 mm. Scenes are rarely that well
-// textured, so 0.10 px is taken (the bottom of the issue's 0.1-0.3 px range). Its IR projector
+// textured, so 0.10 px is taken (the bottom of block matching's 0.1-0.3 px). Its IR projector
 // textures blank surfaces, so no textureless holes.
 DepthNoise DepthNoise::D435() { return DepthNoise(0.050, 0.10, 3.0, 2.0, 0.0); }
 
