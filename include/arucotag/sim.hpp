@@ -87,19 +87,56 @@ cv::Point2f ProjectCentre(const Camera& cam, const Marker& m);
 // the marker frame (same order/convention as cv::aruco).
 std::array<cv::Point3d, 4> MarkerCorners3d(double side);
 
-struct CloudOptions {
-  double nan_fraction = 0.0;       // fraction of pixels turned into holes
-  double depth_noise_sigma = 0.0;  // relative, e.g. 0.005 = 0.5% of depth, along the ray
-  unsigned seed = 2;
-  bool hole_blobs = true;  // holes mostly as clustered blobs (stereo-like), rest salt
+// Stereo depth error as a block-matching camera makes it. Depth comes from disparity,
+// z = f B / d, so a disparity error of sigma_d px gives sigma_z = z^2 sigma_d / (f B): the error
+// grows with the square of range. Matching windows share pixels, so neighbouring errors are alike
+// (patches, not salt); a window straddling a depth edge matches the foreground's texture, so the
+// foreground's depth spreads a few pixels past its silhouette (edge fattening); a window on a
+// featureless patch matches nothing (a hole). f is the camera's focal length in pixels of the
+// depth image (MakeOrganizedCloud takes it from the camera it is given).
+struct DepthNoise {
+  double baseline = 0.0;         // m between the two imagers; 0 = no stereo model
+  double disparity_sigma = 0.0;  // px, per-pixel RMS disparity error (subpixel accuracy)
+  double correlation_px = 0.0;   // px, Gaussian sigma of the error's spatial correlation; 0 = white
+  double edge_fattening_px = 0.0;  // px the nearer surface's depth bleeds across a depth edge
+  double edge_jump_px = 1.0;       // px of disparity step that counts as a depth edge
+  // Grey-level standard deviation over a 7x7 window below which stereo finds no match and the pixel
+  // is a hole; 0 = off. Acts only when MakeOrganizedCloud is given the image.
+  double min_texture = 0.0;
+
+  DepthNoise() = default;
+  // Takes the baseline (m), RMS disparity error (px), correlation length (px), edge fattening
+  // (px) and texture threshold (grey levels); the edge threshold stays at 1 px of disparity.
+  DepthNoise(double baseline_m, double disparity_sigma_px, double correlation_px = 4.0,
+             double edge_fattening_px = 2.0, double min_texture = 0.0);
+
+  // Stereolabs ZED 2: 0.12 m baseline, 0.15 px disparity RMS, 5 px correlation, 3 px fattening.
+  static DepthNoise Zed2();
+  // Intel RealSense D435: 0.050 m baseline, 0.10 px disparity RMS, 3 px correlation, 2 px fattening.
+  static DepthNoise D435();
+
+  // Takes a depth z (m) and focal length f (px); returns sigma_z = z^2 sigma_d / (f B) in m
+  // (0 without a stereo model).
+  double SigmaZ(double z, double focal_px) const;
 };
 
-// Takes a camera and a CV_32F depth image of cam.size (e.g. from RenderScene);
-// returns a CV_32FC3 organized cloud of the same size: each pixel is the 3D
-// point (x, y, z) in the optical frame on the pixel centre's undistorted ray
-// with z = depth (noise moves it along the ray); holes are NaN in all three.
-// Non-finite or non-positive depths also become holes. Deterministic per seed.
-cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt);
+struct CloudOptions {
+  double nan_fraction = 0.0;       // fraction of pixels turned into holes
+  double depth_noise_sigma = 0.0;  // relative white noise, e.g. 0.005 = 0.5% of depth, along the ray
+  unsigned seed = 2;
+  bool hole_blobs = true;  // holes mostly as clustered blobs (stereo-like), rest salt
+  DepthNoise stereo;       // stereo disparity noise, edge fattening, textureless holes (default none)
+};
+
+// Takes a camera, a CV_32F depth image of cam.size (e.g. from RenderScene) and optionally the
+// rendered image (any type RenderScene makes, cam.size; only used for opt.stereo.min_texture);
+// returns a CV_32FC3 organized cloud of the same size: each pixel is the 3D point (x, y, z) in
+// the optical frame on the pixel centre's undistorted ray with z = depth (noise moves it along the
+// ray); holes are NaN in all three. Non-finite or non-positive depths also become holes (or, within
+// opt.stereo.edge_fattening_px of a valid surface, take its depth). Stereo noise is applied in
+// disparity with f = cam.K(0, 0). Deterministic per seed.
+cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt,
+                           const cv::Mat& image = cv::Mat());
 
 // Takes an id, side (m), centre position in the optical frame (m) and Euler
 // angles (deg) applied in the marker frame as R = R_facing * Ry(yaw) *

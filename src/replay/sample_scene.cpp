@@ -461,6 +461,10 @@ SampleFrame SampleScene::Render(double t, bool with_cloud) const {
     cv::filter2D(colour, colour, -1, MotionKernel(light.blur_px, light.blur_angle_deg), cv::Point(-1, -1), 0,
                  cv::BORDER_REFLECT);
   }
+  // What stereo matching sees for texture: the scene before sensor noise (noise is no texture: it
+  // differs between the two imagers), on the cloud's grid.
+  cv::Mat texture;
+  if (with_cloud) cv::resize(colour, texture, CloudCamera().size, 0, 0, cv::INTER_AREA);
   const unsigned seed = 7919u * static_cast<unsigned>(std::llround(t * 1000.0)) + 17u;
   cv::RNG rng(seed);
   cv::Mat noise(colour.size(), colour.type());
@@ -470,7 +474,7 @@ SampleFrame SampleScene::Render(double t, bool with_cloud) const {
 
   if (!with_cloud) return frame;
   // Stereo cloud at the reduced resolution: each block's mean depth (what it sees within range; NaN
-  // when nothing is), dropouts and depth noise on that grid, then into the body frame.
+  // when nothing is), dropouts and the stereo depth model on that grid, then into the body frame.
   const int f = options_.cloud_factor;
   const sim::Camera grid = CloudCamera();
   cv::Mat block_depth(grid.size, CV_32F);
@@ -492,9 +496,9 @@ SampleFrame SampleScene::Render(double t, bool with_cloud) const {
   }
   sim::CloudOptions cloud_options;
   cloud_options.nan_fraction = options_.cloud_holes;
-  cloud_options.depth_noise_sigma = options_.cloud_noise;
+  cloud_options.stereo = options_.cloud_stereo;
   cloud_options.seed = seed + 1;
-  const cv::Mat optical = sim::MakeOrganizedCloud(grid, block_depth, cloud_options);
+  const cv::Mat optical = sim::MakeOrganizedCloud(grid, block_depth, cloud_options, texture);
   const cv::Matx33f to_body = OpticalInBody().rotation();
   frame.cloud.create(optical.size(), CV_32FC3);
   for (int v = 0; v < optical.rows; ++v) {

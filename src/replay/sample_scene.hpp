@@ -57,7 +57,9 @@ struct SampleOptions {
   double hfov_deg = 70.0;
   int supersample = 4;         ///< per axis inside marker boxes; 4 keeps corners well under 0.05 px
   double cloud_holes = 0.25;   ///< fraction of NaN pixels (stereo dropouts), on top of the sky
-  double cloud_noise = 0.004;  ///< relative depth noise (sigma / depth)
+  /// Stereo depth error of the cloud (range-squared, correlated disparity noise, edge fattening,
+  /// featureless holes), at the cloud grid's focal length; the rover's camera is a ZED 2.
+  sim::DepthNoise cloud_stereo = sim::DepthNoise::Zed2();
   double cloud_range = 20.0;   ///< m, stereo cut-off: farther points are NaN
   /// Image pixels per cloud point along each axis: a stereo camera computes depth at a reduced
   /// resolution (a ZED's cloud can be a half or a quarter of its image). Each point lies on the ray

@@ -514,16 +514,114 @@ cv::Mat RenderScene(const Camera& cam, const std::vector<Marker>& markers, const
   return out;
 }
 
-cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt) {
+DepthNoise::DepthNoise(double baseline_m, double disparity_sigma_px, double correlation,
+                       double edge_fattening, double texture)
+    : baseline(baseline_m),
+      disparity_sigma(disparity_sigma_px),
+      correlation_px(correlation),
+      edge_fattening_px(edge_fattening),
+      min_texture(texture) {}
+
+// Stereolabs' ZED 2 datasheet gives a 120 mm baseline and depth accuracy "< 1% up to 3 m, < 5% up
+// to 15 m". With its HD720 focal length (110 deg wide over 1280 px, f ~ 450 px) both bounds work out
+// to sigma_d ~ 0.18 px; as they are upper bounds, 0.15 px is taken (block matching is 0.1-0.3 px).
+// Passive stereo: no projector, so featureless patches give no depth. The correlation length and
+// fattening stand for SGM's smoothing and half a matching window; no published figure.
+DepthNoise DepthNoise::Zed2() { return DepthNoise(0.12, 0.15, 5.0, 3.0, 1.5); }
+
+// Intel's D400 tuning white paper ("Best-Known-Methods for Tuning Intel RealSense D400 Depth
+// Cameras") writes depth RMS error = z^2 * subpixel / (f * B) with a subpixel RMS of about 0.08 px
+// on a well-textured target (0.1 at worst); the D435 baseline is 50 mm. Scenes are rarely that well
+// textured, so 0.10 px is taken (the bottom of block matching's 0.1-0.3 px). Its IR projector
+// textures blank surfaces, so no textureless holes.
+DepthNoise DepthNoise::D435() { return DepthNoise(0.050, 0.10, 3.0, 2.0, 0.0); }
+
+double DepthNoise::SigmaZ(double z, double focal_px) const {
+  return baseline > 0 ? z * z * disparity_sigma / (focal_px * baseline) : 0.0;
+}
+
+namespace {
+
+// Unit-variance Gaussian field of `size`, blurred with a Gaussian of `sigma` px (white when 0) and
+// rescaled so that every pixel's standard deviation is 1 again. It is drawn on a canvas padded by
+// the kernel's reach, so pixels at the border average as many draws as those in the middle.
+cv::Mat CorrelatedField(cv::Size size, double sigma, cv::RNG& rng) {
+  const int reach = sigma > 0 ? static_cast<int>(std::ceil(3.0 * sigma)) : 0;
+  cv::Mat canvas(size.height + 2 * reach, size.width + 2 * reach, CV_32F);
+  rng.fill(canvas, cv::RNG::NORMAL, cv::Scalar(0), cv::Scalar(1));
+  if (reach == 0) return canvas;
+  const cv::Mat k = cv::getGaussianKernel(2 * reach + 1, sigma, CV_64F);
+  // Separable kernel k k^T: the blurred variance is sum((k k^T)^2) = (sum k^2)^2.
+  const double gain = k.dot(k);
+  cv::Mat blurred;
+  cv::sepFilter2D(canvas, blurred, CV_32F, k, k, cv::Point(-1, -1), 0, cv::BORDER_REPLICATE);
+  return blurred(cv::Rect(reach, reach, size.width, size.height)) / gain;
+}
+
+// Grey-level standard deviation over a 7x7 window around each pixel (CV_32F).
+cv::Mat LocalContrast(const cv::Mat& image) {
+  cv::Mat grey, mean, sq;
+  if (image.channels() == 3)
+    cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+  else
+    grey = image;
+  grey.convertTo(grey, CV_32F);
+  cv::boxFilter(grey, mean, CV_32F, cv::Size(7, 7), cv::Point(-1, -1), true, cv::BORDER_REFLECT);
+  cv::boxFilter(grey.mul(grey), sq, CV_32F, cv::Size(7, 7), cv::Point(-1, -1), true,
+                cv::BORDER_REFLECT);
+  cv::Mat var = cv::max(sq - mean.mul(mean), 0.0);
+  cv::sqrt(var, var);
+  return var;
+}
+
+}  // namespace
+
+cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudOptions& opt,
+                           const cv::Mat& image) {
   CV_Assert(depth.type() == CV_32F && depth.size() == cam.size);
+  CV_Assert(image.empty() || image.size() == cam.size);
+  const DepthNoise& stereo = opt.stereo;
+  CV_Assert(stereo.baseline >= 0 && stereo.disparity_sigma >= 0 && stereo.correlation_px >= 0 &&
+            stereo.edge_fattening_px >= 0);
   const RayMap rays(cam, cv::Rect(cv::Point(0, 0), cam.size));
   cv::RNG rng(opt.seed);
   cv::Mat noise(depth.size(), CV_64F, cv::Scalar(0));
   if (opt.depth_noise_sigma > 0)
     rng.fill(noise, cv::RNG::NORMAL, cv::Scalar(0), cv::Scalar(opt.depth_noise_sigma));
 
+  // Stereo happens in disparity, d = f B / z (0 = no match). Its own generator keeps the draws
+  // above, and so clouds made without a stereo model, as they were.
+  const bool has_stereo = stereo.baseline > 0;
+  const double fb = cam.K(0, 0) * stereo.baseline;
+  cv::Mat disparity(depth.size(), CV_32F, cv::Scalar(0));
+  if (has_stereo) {
+    for (int v = 0; v < depth.rows; ++v)
+      for (int u = 0; u < depth.cols; ++u) {
+        const float d = depth.at<float>(v, u);
+        if (std::isfinite(d) && d > 0) disparity.at<float>(v, u) = static_cast<float>(fb / d);
+      }
+    if (stereo.edge_fattening_px > 0) {
+      // A pixel within the fattening radius of a nearer surface (a disparity larger by more than
+      // the edge threshold) takes that surface's disparity, as a matching window straddling the
+      // edge locks onto the foreground; no-depth pixels count as infinitely far.
+      const int r = std::max(1, static_cast<int>(std::lround(stereo.edge_fattening_px)));
+      cv::Mat nearest;
+      cv::dilate(disparity, nearest,
+                 cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+      const cv::Mat edge = nearest - disparity > stereo.edge_jump_px;
+      nearest.copyTo(disparity, edge);
+    }
+    if (stereo.disparity_sigma > 0) {
+      cv::RNG stereo_rng(opt.seed * 2246822519u + 3266489917u);
+      const cv::Mat field = CorrelatedField(depth.size(), stereo.correlation_px, stereo_rng);
+      cv::Mat valid = disparity > 0;
+      disparity += field * stereo.disparity_sigma;
+      disparity.setTo(0, ~valid);
+    }
+  }
+
   // Holes: a blurred random field thresholded at its quantile makes stereo-like
-  // clustered dropouts of the requested share; the rest is salt.
+  // clustered dropouts of 70 % of the requested share; salt outside the blobs makes the rest.
   cv::Mat hole(depth.size(), CV_8U, cv::Scalar(0));
   if (opt.nan_fraction > 0) {
     const double blob_share = opt.hole_blobs ? 0.7 : 0.0;
@@ -540,14 +638,21 @@ cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudO
     }
     cv::Mat salt(depth.size(), CV_32F);
     rng.fill(salt, cv::RNG::UNIFORM, cv::Scalar(0), cv::Scalar(1));
-    hole |= salt < (1.0 - blob_share) * opt.nan_fraction;
+    const double blobs = blob_share * opt.nan_fraction;
+    hole |= salt < std::min(1.0, (opt.nan_fraction - blobs) / (1.0 - blobs));
   }
+  if (has_stereo && stereo.min_texture > 0 && !image.empty())
+    hole |= LocalContrast(image) < stereo.min_texture;
 
   const float nan = std::numeric_limits<float>::quiet_NaN();
   cv::Mat cloud(depth.size(), CV_32FC3);
   for (int v = 0; v < depth.rows; ++v)
     for (int u = 0; u < depth.cols; ++u) {
-      const double d = depth.at<float>(v, u);
+      double d = depth.at<float>(v, u);
+      if (has_stereo) {
+        const double disp = disparity.at<float>(v, u);
+        d = disp > 0 ? fb / disp : nan;  // a match pushed past infinity is no match
+      }
       if (hole.at<uchar>(v, u) || !std::isfinite(d) || d <= 0) {
         cloud.at<cv::Vec3f>(v, u) = cv::Vec3f(nan, nan, nan);
         continue;

@@ -12,7 +12,9 @@
 //   /zed/left/camera_info                  sensor_msgs/CameraInfo (rectified, no distortion) from the
 //                                          driver's own 2 Hz timer, stamped when sent: never an image's stamp
 //   /zed/point_cloud/cloud_registered      sensor_msgs/PointCloud2 for every third image (a stereo cloud is
-//                                          slower), organized 640x360 (one point per 2x2 pixel block),
+//                                          slower), organized 640x360 (one point per 2x2 pixel block)
+//                                          with a ZED 2's depth error (sim::DepthNoise::Zed2: range-squared
+//                                          patchy noise, fattened edges, holes on featureless patches),
 //                                          float32 x y z + 4 bytes padding (point_step 16, like a ZED's
 //                                          XYZRGBA), frame zed_left_camera_frame, stamped with its image's stamp
 //   /tf                                    odom -> base_link at 3x the frame rate

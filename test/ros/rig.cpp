@@ -46,7 +46,12 @@ Scene Render(const std::vector<sim::Marker>& markers, const sim::RenderOptions& 
   scene.markers = markers;
   cv::Mat depth;
   scene.image = sim::RenderScene(scene.camera, markers, options, &depth);
-  scene.cloud = sim::MakeOrganizedCloud(scene.camera, depth, {});
+  // The cloud a ZED 2 would give: range-squared patchy depth noise, fattened edges, no depth on
+  // featureless patches (the render's flat paper and grey), seeded with the render.
+  sim::CloudOptions cloud;
+  cloud.stereo = sim::DepthNoise::Zed2();
+  cloud.seed = options.seed;
+  scene.cloud = sim::MakeOrganizedCloud(scene.camera, depth, cloud, scene.image);
   return scene;
 }
 
