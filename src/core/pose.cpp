@@ -133,7 +133,7 @@ constexpr double kSameMinimumRad = 1e-3;
 // growth with the side above kCornerSigmaPriorSide px. Calibrated so the mean NEES per range bin
 // lies within [0.5, 2] x 3 (PoseCovariance.PnpNeesPerRangeBin). Real lenses and calibrations add
 // error the renders do not have; the residual term carries part of it.
-constexpr double kCornerSigmaPrior = 0.0085;
+constexpr double kCornerSigmaPrior = 0.009;
 constexpr double kCornerSigmaPriorSide = 40.0;
 constexpr double kCornerSigmaPriorGrowth = 0.75;
 constexpr double kCornerSigmaPriorDof = 6.0;
