@@ -26,6 +26,14 @@ enum class PoseSource {
 /// Lower-case name of a pose source ("none", "pnp", "point_cloud", "fused").
 const char* PoseSourceName(PoseSource source);
 
+/// Covariance of a pose, row-major, in the order of geometry_msgs/PoseWithCovariance: x, y, z of
+/// the position (m), then small rotations about the x, y, z axes of the frame the pose is expressed
+/// in (rad, applied on the left: R_true = exp([dtheta]x) R_estimate). All NaN when there is no pose.
+using PoseCovariance = cv::Matx<double, 6, 6>;
+
+/// A covariance with every entry NaN: what an unmeasured pose carries.
+inline PoseCovariance UnknownCovariance() { return PoseCovariance::all(std::numeric_limits<double>::quiet_NaN()); }
+
 /// Both solutions of the planar PnP problem (IPPE always yields two for a square).
 struct PnpResult {
   bool valid = false;
@@ -35,8 +43,17 @@ struct PnpResult {
                              std::numeric_limits<double>::quiet_NaN()}};  ///< RMS reprojection error (px)
   int solutions = 0;  ///< how many of the two slots are filled
   /// rms[0] / rms[1] in [0, 1]: near 0 the best solution is clearly right, near 1 the two are
-  /// indistinguishable from the corners alone (a possible pose flip). NaN with a single solution.
+  /// indistinguishable from the corners alone (a possible pose flip). The two slots are always the
+  /// two planar (IPPE) solutions, locally refined when IPPE was off its minimum, so a solver
+  /// fallback never pairs a solution with a copy of itself. NaN with a single solution.
   double ambiguity = std::numeric_limits<double>::quiet_NaN();
+  /// Covariance of each solution (optical frame): corner_sigma^2 (J^T J)^-1 with J the reprojection
+  /// Jacobian at that solution. First-order: it describes the neighbourhood of its own solution and
+  /// says nothing about the flip, which `ambiguity` reports.
+  std::array<PoseCovariance, 2> covariance{{UnknownCovariance(), UnknownCovariance()}};
+  /// Corner noise the covariances assume (image px, per coordinate): the residual of the best
+  /// solution (2 degrees of freedom) pooled with the corner refinement's accuracy as a prior.
+  double corner_sigma = std::numeric_limits<double>::quiet_NaN();
 };
 
 /// What the organized point cloud says about a tag.
@@ -49,6 +66,9 @@ struct CloudResult {
   bool has_rotation = false;  ///< in-plane orientation recovered too
   cv::Matx33d rotation = cv::Matx33d::eye();  ///< marker -> camera rotation from the cloud
   double plane_rms = std::numeric_limits<double>::quiet_NaN();  ///< RMS distance of inliers to the plane (m)
+  /// Covariance of (centre, rotation) in the optical frame, from the fit's residuals and point
+  /// count. Without a rotation the rotation block is unknown (pi^2 on its diagonal, no correlation).
+  PoseCovariance covariance = UnknownCovariance();
 };
 
 /// One detected marker. Pixel coordinates have their origin at the top-left pixel's centre (OpenCV).
@@ -69,6 +89,11 @@ struct ArucoTag {
   double reprojection_error = std::numeric_limits<double>::quiet_NaN();  ///< RMS of the chosen PnP solution (px)
   /// |PnP range - cloud range| (m) when both are known: how far the two measurements agree.
   double depth_disagreement = std::numeric_limits<double>::quiet_NaN();
+  /// Covariance of (tvec, rotation) in the optical frame (see PoseCovariance); NaN without a pose.
+  PoseCovariance covariance = UnknownCovariance();
+  /// False when nothing measured the orientation (a cloud too sparse for a plane and no PnP): rvec
+  /// is then only a guess (facing the camera, upright) and the rotation variances are pi^2.
+  bool orientation_measured = false;
 
   PnpResult pnp;      ///< filled by EstimatePoseFromPNP
   CloudResult cloud;  ///< filled by EstimatePoseFromPointCloud

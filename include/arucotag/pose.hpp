@@ -70,10 +70,14 @@ struct CameraModel {
 /// on object points centred on the marker (TL, TR, BR, BL, side tag.side_length), honouring the
 /// camera's pixel mapping and lens model (the corners are normalized first, so pinhole and fisheye
 /// lenses share one solver). Keeps both IPPE solutions in tag.pnp with their RMS reprojection
-/// errors (image pixels) and
-/// the ambiguity ratio, then sets the tag's pose (see ResolvePose: fused when the tag already has a
-/// cloud result). Returns false (pose untouched) when OpenCV finds no solution. Throws
-/// arucotag::Error on invalid intrinsics or a non-positive side length.
+/// errors (image pixels), the ambiguity ratio (best / second RMS) and a covariance each (see
+/// PnpResult). When IPPE stopped off its minimum (one Gauss-Newton step would remove over half its
+/// squared error: OpenCV's IPPE degenerates on some exactly frontal views) each solution is refined
+/// within its own basin and a global solver (SQPNP from OpenCV 4.5.3, ITERATIVE before) may replace
+/// the one nearest to it, so the pair stays two distinct solutions. Then sets the tag's pose (see
+/// ResolvePose: fused when the tag already has a cloud result). Returns false (pose untouched) when
+/// OpenCV finds no solution. Throws arucotag::Error on invalid intrinsics or a non-positive side
+/// length.
 bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag);
 
 /// Tuning of EstimatePoseFromPointCloud.
@@ -88,7 +92,8 @@ struct CloudPoseOptions {
 /// optical frame, metres, NaN where there is no depth). Uses the finite points inside the tag's
 /// quadrilateral shrunk by options.shrink, fits the marker plane robustly (outliers rejected by
 /// their residual), takes the centre where the fit puts the marker centre, the face normal and,
-/// with enough points, the in-plane orientation. Fills tag.cloud and then the tag's pose (see
+/// with enough points, the in-plane orientation, and the covariance of centre and rotation from the
+/// fit's residuals and point count. Fills tag.cloud and then the tag's pose (see
 /// ResolvePose). Returns false with tag.cloud.valid false when fewer than options.min_points finite
 /// points exist (the pose falls back to PnP if the tag has one, else none): it never produces a
 /// number made of NaNs. Throws arucotag::Error when the cloud is
@@ -108,12 +113,15 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
 int FusedChoice(const ArucoTag& tag);
 
 /// Sets the tag's pose (rvec, tvec, distance, yaw, pose_source, reprojection_error,
-/// depth_disagreement) from tag.pnp and tag.cloud, preferring `wanted`:
-/// - kPnp: the PnP solution with the lower reprojection error.
-/// - kPointCloud: the cloud's centre and orientation (PnP's rotation fills in when the cloud could
-///   not recover one).
+/// depth_disagreement, covariance, orientation_measured) from tag.pnp and tag.cloud, preferring
+/// `wanted`:
+/// - kPnp: the PnP solution with the lower reprojection error, and its covariance.
+/// - kPointCloud: the cloud's centre and orientation with the cloud's covariance (PnP's rotation
+///   and rotation covariance fill in when the cloud could not recover one; with neither, the
+///   orientation is a guess facing the camera and orientation_measured is false).
 /// - kFused: the IPPE solution whose face normal agrees with the cloud's plane (no flipped poses),
-///   with depth_disagreement between PnP and cloud ranges.
+///   with depth_disagreement between PnP and cloud ranges; the pose is that PnP solution, and so is
+///   its covariance.
 /// Falls back to whatever is available when `wanted` is not; kNone clears the pose. Returns the
 /// source actually used.
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted);

@@ -116,8 +116,107 @@ std::vector<cv::Point2d> CameraModel::Normalize(const std::vector<cv::Point2d>& 
 }
 
 namespace {
-// Above this RMS reprojection error (px) the IPPE result is treated as a solver failure.
-constexpr double kIppeFallbackRms = 1.0;
+
+// A Gauss-Newton step that would remove more than this share of IPPE's squared reprojection error
+// means IPPE stopped off a minimum (OpenCV's IPPE degenerates on some exactly frontal views):
+// corner noise alone leaves IPPE close to the least-squares minimum whatever its size.
+constexpr double kOffMinimumShare = 0.5;
+// Below this RMS (px) there is nothing measurable left for another solver to gain.
+constexpr double kNegligibleRms = 0.01;
+// Two refined solutions whose rotations differ by less than this (rad) are one minimum.
+constexpr double kSameMinimumRad = 1e-3;
+// Prior on the corner noise (px per coordinate) and the residual degrees of freedom it weighs as:
+// the four corners leave only 2 degrees of freedom of residual, too few to trust alone (a 2-dof
+// variance estimate is below a tenth of the truth one time in ten). Measured on 500 rendered frames
+// (1-15 m, 0-70 degrees, blur 0-1.2 px, noise 0-4 grey levels): the whole-pattern fit of small
+// markers scatters about 0.01 px, the edge fit of large blurred ones up to 0.02 px, hence the
+// growth with the side above kCornerSigmaPriorSide px. Calibrated so the mean NEES per range bin
+// lies within [0.5, 2] x 3 (PoseCovariance.PnpNeesPerRangeBin). Real lenses and calibrations add
+// error the renders do not have; the residual term carries part of it.
+constexpr double kCornerSigmaPrior = 0.009;
+constexpr double kCornerSigmaPriorSide = 40.0;
+constexpr double kCornerSigmaPriorGrowth = 0.75;
+constexpr double kCornerSigmaPriorDof = 6.0;
+
+using Jacobian = cv::Matx<double, 8, 6>;
+
+cv::Matx33d Skew(const cv::Vec3d& v) { return {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0}; }
+
+// Angle (rad) of the rotation between two Rodrigues rotations.
+double RotationAngle(const cv::Vec3d& a, const cv::Vec3d& b) {
+  cv::Matx33d ra, rb;
+  cv::Rodrigues(a, ra);
+  cv::Rodrigues(b, rb);
+  return std::acos(std::max(-1.0, std::min(1.0, (cv::trace(ra.t() * rb) - 1.0) / 2.0)));
+}
+
+// One pose of the marker and what its four corners say about it.
+struct Candidate {
+  cv::Vec3d rvec, tvec;
+  cv::Vec<double, 8> residual;  // projected - found, image px, x and y of TL TR BR BL
+  Jacobian jacobian;            // d(projected) / d(tvec, small rotation about the camera axes)
+  double SumSq() const { return residual.dot(residual); }
+  // Per coordinate, as solvePnPGeneric's own reprojectionError (what this error always was).
+  double Rms() const { return std::sqrt(SumSq() / 8.0); }
+};
+
+// Projects the corners at (rvec, tvec) through the camera's lens and pixel mapping and fills the
+// candidate. A camera-frame point P = R X + t has dP/dt = I, so OpenCV's tvec columns are the
+// projection's derivative by P for either lens model; a left rotation dtheta moves P by dtheta x P.
+// Returns false behind the camera or when the error is not finite.
+bool Evaluate(const CameraModel& camera, const std::vector<cv::Point3d>& object, const std::vector<cv::Point2d>& image,
+              const cv::Vec3d& rvec, const cv::Vec3d& tvec, Candidate& out) {
+  if (!(tvec[2] > 0.0)) return false;
+  std::vector<cv::Point2d> projected;
+  cv::Mat jacobian;
+  int t_column = 3;  // cv::projectPoints: rvec, tvec, f, c, distortion
+  if (camera.distortion_model == DistortionModel::kEquidistant) {
+    cv::fisheye::projectPoints(object, projected, rvec, tvec, camera.K, camera.distortion, 0.0, jacobian);
+    t_column = 11;  // cv::fisheye::projectPoints: f, c, k1..k4, rvec, tvec, alpha
+  } else {
+    cv::projectPoints(object, rvec, tvec, camera.K, camera.distortion, projected, jacobian);
+  }
+  cv::Matx33d rotation;
+  cv::Rodrigues(rvec, rotation);
+  out.rvec = rvec;
+  out.tvec = tvec;
+  for (size_t k = 0; k < object.size(); ++k) {
+    const cv::Point2d d = camera.pixels.ToImage(projected[k]) - image[k];
+    out.residual[2 * k] = d.x;
+    out.residual[2 * k + 1] = d.y;
+    const cv::Matx33d rotate = -Skew(rotation * cv::Vec3d(object[k].x, object[k].y, object[k].z));
+    for (int axis = 0; axis < 2; ++axis) {
+      const int row = static_cast<int>(2 * k) + axis;
+      const double* j = jacobian.ptr<double>(row) + t_column;
+      const cv::Matx13d by_point = cv::Matx13d(j[0], j[1], j[2]) * (1.0 / camera.pixels.scale[axis]);
+      const cv::Matx13d by_rotation = by_point * rotate;
+      for (int c = 0; c < 3; ++c) {
+        out.jacobian(row, c) = by_point(0, c);
+        out.jacobian(row, 3 + c) = by_rotation(0, c);
+      }
+    }
+  }
+  const double sum_sq = out.SumSq();
+  return std::isfinite(sum_sq) && cv::checkRange(cv::Mat(out.jacobian));
+}
+
+// The share of the squared error one Gauss-Newton step from the candidate would remove: near 0 at
+// a least-squares minimum however noisy the corners, near 1 far from one (1 when J is singular).
+double OffMinimumShare(const Candidate& c) {
+  const cv::Vec6d gradient = c.jacobian.t() * c.residual;
+  cv::Vec6d step;
+  if (!cv::solve(c.jacobian.t() * c.jacobian, gradient, step, cv::DECOMP_CHOLESKY)) return 1.0;
+  const double sum_sq = c.SumSq();
+  return sum_sq > 0.0 ? gradient.dot(step) / sum_sq : 0.0;
+}
+
+// sigma^2 (J^T J)^-1: first order, at the candidate's own minimum. Unknown when J is singular.
+PoseCovariance Covariance(const Candidate& c, double sigma) {
+  cv::Matx66d inverse;
+  if (cv::invert(c.jacobian.t() * c.jacobian, inverse, cv::DECOMP_CHOLESKY) == 0.0) return UnknownCovariance();
+  return inverse * (sigma * sigma);
+}
+
 }  // namespace
 
 bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
@@ -147,58 +246,83 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
     // cv::fisheye marks points it cannot undistort (beyond 90 degrees off axis) with huge values.
     if (!std::isfinite(p.x) || !std::isfinite(p.y) || std::abs(p.x) > 1e5 || std::abs(p.y) > 1e5) return false;
   }
-  struct Candidate {
-    cv::Vec3d rvec, tvec;
-    double rms;
-  };
-  std::vector<Candidate> candidates;
-  const auto solve = [&](int method) {
+  // The errors are measured where the corners were found: in this image's pixels.
+  std::vector<Candidate> pair;  // the planar pair, best first
+  try {
     std::vector<cv::Mat> rvecs, tvecs;
-    int n = 0;
-    try {
-      n = cv::solvePnPGeneric(object, normalized, cv::Matx33d::eye(), cv::noArray(), rvecs, tvecs, false,
-                              static_cast<cv::SolvePnPMethod>(method));
-    } catch (const cv::Exception& e) {
-      throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
-    }
+    const int n = cv::solvePnPGeneric(object, normalized, cv::Matx33d::eye(), cv::noArray(), rvecs, tvecs, false,
+                                      cv::SOLVEPNP_IPPE_SQUARE);
     for (int i = 0; i < n; ++i) {
-      const cv::Vec3d r(rvecs[i].ptr<double>()), t(tvecs[i].ptr<double>());
-      if (!(t[2] > 0.0)) continue;  // behind the camera: not a physical solution
-      // The error is measured where the corners were found: in this image's pixels.
-      const std::vector<cv::Point2d> projected = camera.Project(object, r, t);
-      double sum_sq = 0.0;
-      for (size_t k = 0; k < image.size(); ++k) {
-        const cv::Point2d d = projected[k] - image[k];
-        sum_sq += d.dot(d);
+      Candidate c;
+      if (Evaluate(camera, object, image, cv::Vec3d(rvecs[i].ptr<double>()), cv::Vec3d(tvecs[i].ptr<double>()), c)) {
+        pair.push_back(c);
       }
-      // Per coordinate, as solvePnPGeneric's own reprojectionError (what this error always was).
-      const double rms = std::sqrt(sum_sq / (2.0 * image.size()));
-      if (!std::isfinite(rms)) continue;
-      candidates.push_back({r, t, rms});
     }
-  };
-  solve(cv::SOLVEPNP_IPPE_SQUARE);
-  // OpenCV 4.6's IPPE degenerates on some exactly frontal views (both solutions tens of pixels off);
-  // SQPNP finds the global optimum there, at about ten times the cost, so only when IPPE failed.
-  const auto best_rms = [&] {
-    double best = std::numeric_limits<double>::infinity();
-    for (const auto& c : candidates) best = std::min(best, c.rms);
-    return best;
-  };
-  if (!(best_rms() <= kIppeFallbackRms)) solve(cv::SOLVEPNP_SQPNP);
-  if (candidates.empty()) return false;
-  std::stable_sort(candidates.begin(), candidates.end(),
-                   [](const Candidate& a, const Candidate& b) { return a.rms < b.rms; });
+    const auto by_error = [](const Candidate& a, const Candidate& b) { return a.SumSq() < b.SumSq(); };
+    std::stable_sort(pair.begin(), pair.end(), by_error);
+
+    if (pair.empty() || (pair[0].Rms() > kNegligibleRms && OffMinimumShare(pair[0]) > kOffMinimumShare)) {
+      // IPPE is off its minimum. Each of its solutions is refined within its own basin, so the pair
+      // stays the planar pair; a refinement that lands on the other's minimum is dropped, as it
+      // would report one solution twice (and call it ambiguous).
+      std::vector<Candidate> refined;
+      for (const Candidate& c : pair) {
+        cv::Vec3d r = c.rvec, t = c.tvec;
+        cv::solvePnPRefineLM(object, normalized, cv::Matx33d::eye(), cv::noArray(), r, t);
+        Candidate better;
+        const bool ok = Evaluate(camera, object, image, r, t, better) && better.SumSq() < c.SumSq();
+        const bool repeat = !refined.empty() && RotationAngle(better.rvec, refined[0].rvec) < kSameMinimumRad;
+        refined.push_back(ok && !repeat ? better : c);
+      }
+      pair = refined;
+      // A global solver too, for views where both IPPE solutions sit in wrong basins. It replaces
+      // the solution of the pair nearest to it when it does better there, never the other one.
+#if CV_VERSION_MAJOR > 4 || (CV_VERSION_MAJOR == 4 && CV_VERSION_MINOR >= 6) || \
+    (CV_VERSION_MAJOR == 4 && CV_VERSION_MINOR == 5 && CV_VERSION_REVISION >= 3)
+      const auto global_method = cv::SOLVEPNP_SQPNP;  // the global minimum (OpenCV 4.5.3 and later)
+#else
+      const auto global_method = cv::SOLVEPNP_ITERATIVE;  // homography start, then Levenberg-Marquardt
+#endif
+      rvecs.clear();
+      tvecs.clear();
+      const int m = cv::solvePnPGeneric(object, normalized, cv::Matx33d::eye(), cv::noArray(), rvecs, tvecs, false,
+                                        global_method);
+      for (int i = 0; i < m; ++i) {
+        Candidate g;
+        if (!Evaluate(camera, object, image, cv::Vec3d(rvecs[i].ptr<double>()), cv::Vec3d(tvecs[i].ptr<double>()), g)) {
+          continue;
+        }
+        if (pair.empty()) {
+          pair.push_back(g);
+          continue;
+        }
+        size_t nearest = 0;
+        for (size_t k = 1; k < pair.size(); ++k) {
+          if (RotationAngle(g.rvec, pair[k].rvec) < RotationAngle(g.rvec, pair[nearest].rvec)) nearest = k;
+        }
+        if (g.SumSq() < pair[nearest].SumSq()) pair[nearest] = g;
+      }
+      std::stable_sort(pair.begin(), pair.end(), by_error);
+    }
+  } catch (const cv::Exception& e) {
+    throw Error(std::string("EstimatePoseFromPNP: OpenCV rejected the input: ") + e.what());
+  }
+  if (pair.empty()) return false;
 
   PnpResult result;
-  for (const auto& c : candidates) {
-    if (result.solutions == 2) break;
-    if (result.solutions == 1 && cv::norm(c.rvec - result.rvec[0]) < 1e-6 && cv::norm(c.tvec - result.tvec[0]) < 1e-9) {
-      continue;  // the fallback found IPPE's own answer again
-    }
-    result.rvec[result.solutions] = c.rvec;
-    result.tvec[result.solutions] = c.tvec;
-    result.rms[result.solutions] = c.rms;
+  // The corners' noise, from the best solution's residual (E[SSE] = 2 sigma^2: 8 coordinates, 6
+  // unknowns) pooled with the prior. The second solution's residual is its own misfit, not noise.
+  double side_px = 0.0;
+  for (size_t k = 0; k < image.size(); ++k) side_px += 0.25 * cv::norm(image[(k + 1) % image.size()] - image[k]);
+  const double prior_sigma =
+      kCornerSigmaPrior * std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth);
+  const double prior = kCornerSigmaPriorDof * prior_sigma * prior_sigma;
+  result.corner_sigma = std::sqrt((prior + pair[0].SumSq()) / (kCornerSigmaPriorDof + 2.0));
+  for (size_t i = 0; i < pair.size() && i < 2; ++i) {
+    result.rvec[i] = pair[i].rvec;
+    result.tvec[i] = pair[i].tvec;
+    result.rms[i] = pair[i].Rms();
+    result.covariance[i] = Covariance(pair[i], result.corner_sigma);
     ++result.solutions;
   }
   if (result.solutions == 2) {
@@ -241,6 +365,58 @@ double Median(std::vector<double> values) {
   const auto mid = values.begin() + values.size() / 2;
   std::nth_element(values.begin(), mid, values.end());
   return *mid;
+}
+
+// The marker -> camera rotation of a fitted plane xyz = c + a * ex + b * ey: z the face normal turned
+// towards the camera, x along ex.
+cv::Matx33d PlaneRotation(const cv::Vec3d& c, const cv::Vec3d& ex, const cv::Vec3d& ey) {
+  cv::Vec3d normal = cv::normalize(ex.cross(ey));
+  if (normal.dot(c) > 0.0) normal = -normal;  // face the camera whatever the corner order
+  const cv::Vec3d x = cv::normalize(ex - ex.dot(normal) * normal);
+  const cv::Vec3d y = normal.cross(x);
+  return cv::Matx33d(x[0], y[0], normal[0], x[1], y[1], normal[1], x[2], y[2], normal[2]);
+}
+
+// Covariance of (c, rotation) of the plane fit: the three coordinates share the design [1 a b], so
+// the parameters (c, ex, ey) have covariance (A^T A)^-1 (x) S with S the points' 3x3 noise
+// covariance from the inliers' residuals (anisotropic: stereo noise lies along the ray). The
+// rotation's derivative by ex and ey is taken numerically. Assumes independent points: a cloud
+// whose noise is correlated between neighbours is less certain than this says.
+PoseCovariance PlaneCovariance(const std::vector<Sample>& samples, const std::vector<char>& use, const cv::Vec3d& c,
+                               const cv::Vec3d& ex, const cv::Vec3d& ey) {
+  cv::Matx33d ata = cv::Matx33d::zeros(), noise = cv::Matx33d::zeros();
+  int n = 0;
+  for (size_t i = 0; i < samples.size(); ++i) {
+    if (!use[i]) continue;
+    const cv::Vec3d row(1.0, samples[i].a, samples[i].b);
+    ata += row * row.t();
+    const cv::Vec3d r = samples[i].xyz - (c + samples[i].a * ex + samples[i].b * ey);
+    noise += r * r.t();
+    ++n;
+  }
+  cv::Matx33d design;
+  if (n <= 3 || cv::invert(ata, design, cv::DECOMP_CHOLESKY) == 0.0) return UnknownCovariance();
+  noise *= 1.0 / (n - 3);
+  cv::Matx<double, 9, 9> parameters;  // index 3 * p + j: parameter p (c, ex, ey), coordinate j
+  for (int p = 0; p < 3; ++p)
+    for (int q = 0; q < 3; ++q)
+      for (int j = 0; j < 3; ++j)
+        for (int k = 0; k < 3; ++k) parameters(3 * p + j, 3 * q + k) = design(p, q) * noise(j, k);
+  cv::Matx<double, 6, 9> g = cv::Matx<double, 6, 9>::zeros();
+  for (int j = 0; j < 3; ++j) g(j, j) = 1.0;
+  const cv::Matx33d rotation = PlaneRotation(c, ex, ey);
+  const double step = 1e-6 * cv::norm(ex);
+  for (int p = 1; p < 3; ++p) {
+    for (int j = 0; j < 3; ++j) {
+      cv::Vec3d moved_x = ex, moved_y = ey;
+      (p == 1 ? moved_x : moved_y)[j] += step;
+      // The small-angle vector of the difference (cv::Rodrigues rounds angles below 1e-5 to 0).
+      const cv::Matx33d d = PlaneRotation(c, moved_x, moved_y) * rotation.t();
+      const cv::Vec3d dtheta(d(2, 1) - d(1, 2), d(0, 2) - d(2, 0), d(1, 0) - d(0, 1));
+      for (int r = 0; r < 3; ++r) g(3 + r, 3 * p + j) = 0.5 * dtheta[r] / step;
+    }
+  }
+  return g * parameters * g.t();
 }
 
 // A rotation whose z axis points from the tag back to the camera: the best guess of orientation when
@@ -325,18 +501,15 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
     if (kept < options.min_plane_points) fitted = false;
   }
 
-  const cv::Vec3d z = fitted ? ex.cross(ey) : cv::Vec3d();
-  if (fitted && cv::norm(z) > 0.0 && cv::norm(ex) > 0.0) {
+  if (fitted && cv::norm(ex.cross(ey)) > 0.0 && cv::norm(ex) > 0.0) {
     result.points = static_cast<int>(std::count(use.begin(), use.end(), 1));
     result.centre = c;
-    cv::Vec3d normal = cv::normalize(z);
-    if (normal.dot(c) > 0.0) normal = -normal;  // face the camera whatever the corner order
+    result.rotation = PlaneRotation(c, ex, ey);
+    const cv::Vec3d normal(result.rotation(0, 2), result.rotation(1, 2), result.rotation(2, 2));
     result.normal = normal;
     result.has_normal = true;
-    const cv::Vec3d x = cv::normalize(ex - ex.dot(normal) * normal);
-    const cv::Vec3d y = normal.cross(x);
-    result.rotation = cv::Matx33d(x[0], y[0], normal[0], x[1], y[1], normal[1], x[2], y[2], normal[2]);
     result.has_rotation = true;
+    result.covariance = PlaneCovariance(samples, use, c, ex, ey);
     double sum_sq = 0.0;
     for (size_t i = 0; i < samples.size(); ++i) {
       if (use[i]) sum_sq += std::pow((samples[i].xyz - c).dot(normal), 2);
@@ -352,6 +525,17 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
     }
     result.points = static_cast<int>(samples.size());
     result.centre = cv::Vec3d(Median(xs), Median(ys), Median(zs));
+    // The median's variance is pi/2 times the mean's; the points' spread (MAD) stands for their
+    // noise and for where on the tag they happen to lie. Nothing measured the orientation.
+    result.covariance = PoseCovariance::zeros();
+    const std::vector<double>* axes[3] = {&xs, &ys, &zs};
+    for (int j = 0; j < 3; ++j) {
+      std::vector<double> deviation;
+      for (double v : *axes[j]) deviation.push_back(std::abs(v - result.centre[j]));
+      const double spread = 1.4826 * Median(deviation);
+      result.covariance(j, j) = CV_PI / 2.0 * spread * spread / result.points;
+      result.covariance(3 + j, 3 + j) = CV_PI * CV_PI;
+    }
   }
   result.valid = true;
   ResolvePose(tag, tag.pnp.valid ? PoseSource::kFused : PoseSource::kPointCloud);
@@ -429,6 +613,8 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
   const double nan = std::numeric_limits<double>::quiet_NaN();
   tag.pose_source = source;
   tag.reprojection_error = nan;
+  tag.covariance = UnknownCovariance();
+  tag.orientation_measured = source != PoseSource::kNone;
   tag.depth_disagreement = pnp && cloud ? std::abs(cv::norm(tag.pnp.tvec[0]) - cv::norm(tag.cloud.centre)) : nan;
   switch (source) {
     case PoseSource::kNone:
@@ -439,16 +625,25 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       tag.rvec = tag.pnp.rvec[0];
       tag.tvec = tag.pnp.tvec[0];
       tag.reprojection_error = tag.pnp.rms[0];
+      tag.covariance = tag.pnp.covariance[0];
       break;
     case PoseSource::kPointCloud: {
       tag.tvec = tag.cloud.centre;
+      tag.covariance = tag.cloud.covariance;
       cv::Matx33d rotation;
       if (tag.cloud.has_rotation) {
         rotation = tag.cloud.rotation;
       } else if (pnp) {
         cv::Rodrigues(tag.pnp.rvec[0], rotation);
+        // Two independent measurements: the cloud's centre, PnP's rotation.
+        for (int i = 0; i < 6; ++i) {
+          for (int j = 0; j < 6; ++j) {
+            if (i >= 3 || j >= 3) tag.covariance(i, j) = i >= 3 && j >= 3 ? tag.pnp.covariance[0](i, j) : 0.0;
+          }
+        }
       } else {
         rotation = FacingCamera(tag.cloud.centre);
+        tag.orientation_measured = false;
       }
       cv::Rodrigues(rotation, tag.rvec);
       break;
@@ -458,6 +653,10 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       tag.rvec = tag.pnp.rvec[best];
       tag.tvec = tag.pnp.tvec[best];
       tag.reprojection_error = tag.pnp.rms[best];
+      // The cloud only chose between the two solutions: the pose is PnP's, and so is its
+      // covariance. A fusion that averages cloud and PnP would weigh them by their information
+      // (tag.cloud.covariance and tag.pnp.covariance[best]) here.
+      tag.covariance = tag.pnp.covariance[best];
       tag.depth_disagreement = std::abs(cv::norm(tag.tvec) - cv::norm(tag.cloud.centre));
       break;
     }

@@ -32,6 +32,20 @@ geometry_msgs::Point ToPoint(const cv::Point2f& p) {
 
 std::string Size(int width, int height) { return std::to_string(width) + "x" + std::to_string(height); }
 
+// A pose covariance moved into a frame rotated by q: position and the rotation angles (about fixed
+// axes) both turn with the frame, so C' = B C B^T with B = diag(R, R). The translation adds nothing.
+void RotateCovariance(const geometry_msgs::Quaternion& q, boost::array<double, 36>& covariance) {
+  tf2::Quaternion rotation;
+  tf2::fromMsg(q, rotation);
+  const tf2::Matrix3x3 m(rotation);
+  cv::Matx66d b = cv::Matx66d::zeros();
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) b(i, j) = b(3 + i, 3 + j) = m[i][j];
+  }
+  const cv::Matx66d moved = b * cv::Matx66d(covariance.data()) * b.t();
+  std::copy(moved.val, moved.val + 36, covariance.begin());
+}
+
 }  // namespace
 
 geometry_msgs::Pose ToPose(const cv::Vec3d& rvec, const cv::Vec3d& tvec) {
@@ -61,6 +75,8 @@ ArucoTagMsg ToMessage(const ArucoTag& tag) {
   } else {
     msg.pose.orientation.w = 1.0;  // a valid quaternion even when there is nothing to say
   }
+  for (int i = 0; i < 36; ++i) msg.covariance[i] = tag.covariance.val[i];  // both row-major
+  msg.orientation_measured = tag.orientation_measured;
   msg.distance = tag.distance;
   msg.yaw = tag.yaw;
   msg.reprojection_error = tag.reprojection_error;
@@ -80,6 +96,7 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
     array.tags.push_back(ToMessage(tag));
     if (to_output && tag.HasPose()) {
       tf2::doTransform(array.tags.back().pose, array.tags.back().pose, *to_output);
+      RotateCovariance(to_output->transform.rotation, array.tags.back().covariance);
     }
   }
   return array;
