@@ -66,6 +66,10 @@ struct CloudResult {
   bool has_rotation = false;  ///< in-plane orientation recovered too
   cv::Matx33d rotation = cv::Matx33d::eye();  ///< marker -> camera rotation from the cloud
   double plane_rms = std::numeric_limits<double>::quiet_NaN();  ///< RMS distance of inliers to the plane (m)
+  /// Standard deviation of `normal` (rad): the plane residuals or the camera's depth noise at that
+  /// range (CloudPoseOptions::depth_noise_per_m2), whichever is larger, over the points' lever arm,
+  /// plus a systematic 5 degrees. What FusedChoice weighs the cloud's evidence by.
+  double normal_sigma = std::numeric_limits<double>::quiet_NaN();
   /// Covariance of (centre, rotation) in the optical frame, from the fit's residuals and point
   /// count. Without a rotation the rotation block is unknown (pi^2 on its diagonal, no correlation).
   PoseCovariance covariance = UnknownCovariance();

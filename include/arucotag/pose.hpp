@@ -86,6 +86,11 @@ struct CloudPoseOptions {
   int min_points = 12;    ///< fewer finite points than this -> failure
   int min_plane_points = 30;  ///< fewer -> centre only, no normal/rotation
   int max_samples = 4000;  ///< subsample large tags to this many points (speed, not accuracy)
+  /// The depth camera's noise model sigma_z = depth_noise_per_m2 * z^2 (1/m); for a stereo camera
+  /// sigma_d / (f * B): disparity noise (px) over focal length (px) times baseline (m). Default: a
+  /// ZED 2 at HD720 (0.15 px / (700 px * 0.12 m)). Stereo noise is correlated and hides in small
+  /// plane residuals, so this is the floor of the plane's depth noise.
+  double depth_noise_per_m2 = 0.0018;
 };
 
 /// Measures the tag from an organized cloud (CV_32FC3, one XYZ point per image pixel, in the image's
@@ -104,7 +109,7 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
 /// Which of the tag's two PnP solutions (0 = the corners' pick) the fused pose takes. Each
 /// measurement weighs in with a chi-square difference between the solutions under its own noise:
 /// the corners' from the two reprojection errors (corner noise estimated from the better one's
-/// residuals, at least 0.05 px), the cloud's from the angles between its plane normal and each
+/// residuals, at least 0.1 px), the cloud's from the angles between its plane normal and each
 /// solution's, over the normal's standard deviation (plane residuals and point count, capped for
 /// correlated stereo noise, plus 5 degrees of systematic error in quadrature). The cloud overrides the corners only when its evidence exceeds theirs
 /// by 9 (three sigma), the normals differ by 2 degrees or more, and the plane lies within 15 degrees

@@ -432,6 +432,45 @@ cv::Matx33d FacingCamera(const cv::Vec3d& position) {
 
 }  // namespace
 
+namespace {
+
+// Plane-fit residuals are correlated in patches (stereo block matching): no more independent
+// points than this count towards the normal's precision.
+constexpr double kMaxIndependentPoints = 25.0;
+// Corner noise never assumed below this (px): the edge and pattern fits reach 0.03-0.09 px (p95) on
+// renders; real, compressed images are noisier.
+constexpr double kMinCornerSigma = 0.1;
+// The cloud overrides the corners when its evidence for the other solution exceeds theirs for the
+// pick by this much (a chi-square difference: 9 = three standard deviations)...
+constexpr double kDecisiveEvidence = 9.0;
+// ...and the two normals it compares differ from the cloud's by at least this much.
+constexpr double kMinNormalMargin = 2.0 * CV_PI / 180.0;
+// A real cloud's normal is off by more than its noise says: blocks averaged across the marker's
+// edge, a cloud a frame older than the image on a turning rover, calibration. This much (rad) is
+// added in quadrature. Without it the sample recording's fused poses flipped 13 times where PnP
+// alone flipped none.
+constexpr double kNormalSystematic = 5.0 * CV_PI / 180.0;
+// A plane further than this from both solutions is not this marker's face (the ground or a post
+// behind a small marker, a cloud misregistered by motion): it says nothing about the choice.
+constexpr double kMaxPlaneDisagreement = 15.0 * CV_PI / 180.0;
+
+// Standard deviation (rad) of the fitted plane's normal: depth noise (the plane residuals, at least
+// the camera's model at that range) over the
+// lever arm of the points (uniform over the shrunk square: sd side / sqrt(12) per axis), plus the
+// systematic part.
+double NormalSigma(const ArucoTag& tag, const CloudResult& cloud, const CloudPoseOptions& options) {
+  const double extent = tag.side_length * (1.0 - options.shrink) / std::sqrt(12.0);
+  const double n = std::min<double>(cloud.points, kMaxIndependentPoints);
+  if (!std::isfinite(cloud.plane_rms) || extent <= 0.0 || n < 3.0) return CV_PI;
+  // Correlated noise looks like a tilt of the whole patch and leaves small residuals: the camera's
+  // own depth noise at that range is the floor.
+  const double z = cv::norm(cloud.centre);
+  const double depth_sigma = std::max({cloud.plane_rms, options.depth_noise_per_m2 * z * z, 1e-4});
+  return std::hypot(depth_sigma / (extent * std::sqrt(n)), kNormalSystematic);
+}
+
+}  // namespace
+
 bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
                                 const CloudPoseOptions& options) {
   if (cloud.type() != CV_32FC3) {
@@ -515,6 +554,7 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
       if (use[i]) sum_sq += std::pow((samples[i].xyz - c).dot(normal), 2);
     }
     result.plane_rms = std::sqrt(sum_sq / result.points);
+    result.normal_sigma = NormalSigma(tag, result, options);
   } else {
     // Too few points for a plane: the per-axis median is still robust to flying pixels.
     std::vector<double> xs, ys, zs;
@@ -542,51 +582,19 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
   return true;
 }
 
-namespace {
-
-// Plane-fit residuals are correlated in patches (stereo block matching): no more independent
-// points than this count towards the normal's precision.
-constexpr double kMaxIndependentPoints = 25.0;
-// Corner noise never assumed below this (px): the refinements' own floor.
-constexpr double kMinCornerSigma = 0.05;
-// The cloud overrides the corners when its evidence for the other solution exceeds theirs for the
-// pick by this much (a chi-square difference: 9 = three standard deviations)...
-constexpr double kDecisiveEvidence = 9.0;
-// ...and the two normals it compares differ from the cloud's by at least this much.
-constexpr double kMinNormalMargin = 2.0 * CV_PI / 180.0;
-// A real cloud's normal is off by more than its noise says: blocks averaged across the marker's
-// edge, a cloud a frame older than the image on a turning rover, calibration. This much (rad) is
-// added in quadrature. Without it the sample recording's fused poses flipped 13 times where PnP
-// alone flipped none.
-constexpr double kNormalSystematic = 5.0 * CV_PI / 180.0;
-// A plane further than this from both solutions is not this marker's face (the ground or a post
-// behind a small marker, a cloud misregistered by motion): it says nothing about the choice.
-constexpr double kMaxPlaneDisagreement = 15.0 * CV_PI / 180.0;
-
-// Standard deviation (rad) of the fitted plane's normal: depth noise (the plane residuals) over the
-// lever arm of the points (uniform over the shrunk square: sd side / sqrt(12) per axis), plus the
-// systematic part.
-double NormalSigma(const ArucoTag& tag, const CloudPoseOptions& options) {
-  const double extent = tag.side_length * (1.0 - options.shrink) / std::sqrt(12.0);
-  const double n = std::min<double>(tag.cloud.points, kMaxIndependentPoints);
-  if (!std::isfinite(tag.cloud.plane_rms) || extent <= 0.0 || n < 3.0) return CV_PI;
-  const double noise = std::max(tag.cloud.plane_rms, 1e-4) / (extent * std::sqrt(n));
-  return std::hypot(noise, kNormalSystematic);
-}
-
-}  // namespace
-
 int FusedChoice(const ArucoTag& tag) {
   // IPPE's two solutions differ mainly by a reflection of the face normal about the line of sight.
   // Each measurement's evidence is a chi-square difference between the two solutions under its own
-  // noise: the corners' from the reprojection errors (8 residuals, 6 unknowns: the right solution's
-  // RMS is about half the corner noise), the cloud's from the angles between its normal and each
+  // noise: the corners' from the reprojection errors (8 residuals, 6 unknowns: a solution's RMS is
+  // about half the corner noise), the cloud's from the angles between its normal and each
   // solution's. The cloud overrides the corners' pick only when its evidence clearly outweighs
   // theirs, so a noisy or stale cloud does not flip a good PnP pose, and a confident plane fixes
   // an ambiguous one.
   if (!tag.cloud.has_normal || tag.pnp.solutions < 2) return 0;
   const double e0 = tag.pnp.rms[0], e1 = tag.pnp.rms[1];
   if (!std::isfinite(e0) || !std::isfinite(e1)) return 0;
+  // When the corners mislead, the wrong solution has absorbed the noise and the better fit's
+  // residual understates it: the floor is the corner noise of real images.
   const double corner_sigma = std::max(2.0 * std::min(e0, e1), kMinCornerSigma);
   const double corners = 8.0 * (e1 * e1 - e0 * e0) / (corner_sigma * corner_sigma);
   double angle[2];
@@ -597,7 +605,7 @@ int FusedChoice(const ArucoTag& tag) {
     angle[i] = std::acos(std::max(-1.0, std::min(1.0, c)));
   }
   if (angle[0] - angle[1] < kMinNormalMargin || angle[1] > kMaxPlaneDisagreement) return 0;
-  const double sigma = NormalSigma(tag, CloudPoseOptions());
+  const double sigma = std::isfinite(tag.cloud.normal_sigma) ? tag.cloud.normal_sigma : CV_PI;
   const double cloud = (angle[0] * angle[0] - angle[1] * angle[1]) / (sigma * sigma);
   return cloud - corners > kDecisiveEvidence ? 1 : 0;
 }

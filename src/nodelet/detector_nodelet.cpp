@@ -532,7 +532,7 @@ void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& c
                               const cv::Size& size) {
   try {
     if (camera) EstimatePoseFromPNP(*camera, tag);
-    if (!cloud.empty()) EstimatePoseFromPointCloud(cloud, size, tag);
+    if (!cloud.empty()) EstimatePoseFromPointCloud(cloud, size, tag, params_.cloud);
   } catch (const std::exception& e) {
     Fail("pose", "tag " + std::to_string(tag.id) + ": " + e.what());
   }

@@ -71,6 +71,7 @@ const char* const kOtherNames[] = {
     "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
     "image_transport", "use_point_cloud", "queue_size", "pose_source", "publish_tf", "output_frame",
     "frame_prefix", "rectified", "camera_info_max_age", "camera_info_wait", "cloud_max_dt", "cloud_cache_size",
+    "depth_noise",
     "diagnostic_period",  // diagnostic_updater's own
 };
 
@@ -233,6 +234,9 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   seconds("camera_info_max_age", p.camera_info_max_age);
   seconds("camera_info_wait", p.camera_info_wait);
   seconds("cloud_max_dt", p.cloud_max_dt);
+  Get(pnh, "depth_noise", p.cloud.depth_noise_per_m2);
+  Require(std::isfinite(p.cloud.depth_noise_per_m2) && p.cloud.depth_noise_per_m2 >= 0.0, "depth_noise",
+          "must be >= 0 (sigma_z / z^2, 1/m)");
   Get(pnh, "cloud_cache_size", p.cloud_cache_size);
   Require(p.cloud_cache_size >= 1, "cloud_cache_size", "must be >= 1");
   return p;

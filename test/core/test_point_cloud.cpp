@@ -155,6 +155,7 @@ struct Choice {
     tag.cloud.valid = tag.cloud.has_normal = true;
     tag.cloud.points = 200;
     tag.cloud.plane_rms = 0.002;
+    tag.cloud.normal_sigma = 5.5 * CV_PI / 180.0;  // a clean plane: the systematic 5 degrees and a little
   }
 };
 
@@ -164,8 +165,9 @@ TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
   ambiguous.tag.cloud.normal = ambiguous.normal[1];
   EXPECT_EQ(FusedChoice(ambiguous.tag), 1);
 
-  // The same plane, but the corners are decisive (the other solution reprojects 10x worse).
-  Choice decisive(0.02, 0.2);
+  // The same plane, but the corners are decisive (the other solution reprojects 0.5 px off, five
+  // times the corner noise floor).
+  Choice decisive(0.02, 0.5);
   decisive.tag.cloud.normal = decisive.normal[1];
   EXPECT_EQ(FusedChoice(decisive.tag), 0) << "a plane 40 degrees off must not overturn clear corners";
 
@@ -174,10 +176,11 @@ TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
   ground.tag.cloud.normal = cv::normalize(ground.normal[0].cross(ground.normal[1]));
   EXPECT_EQ(FusedChoice(ground.tag), 0);
 
-  // A very noisy plane (6 cm residuals: a stereo camera at 10 m) near solution 1: not decisive.
+  // A very noisy plane (a stereo camera at 6 m: 30 degrees on the normal) near solution 1: not decisive.
   Choice noisy(0.030, 0.032);
   noisy.tag.cloud.normal = noisy.normal[1];
   noisy.tag.cloud.plane_rms = 0.06;
+  noisy.tag.cloud.normal_sigma = 30.0 * CV_PI / 180.0;
   EXPECT_EQ(FusedChoice(noisy.tag), 0);
 
   // No plane, or one solution: the corners' pick.
@@ -185,6 +188,22 @@ TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
   flat.tag.cloud.normal = flat.normal[1];
   flat.tag.cloud.has_normal = false;
   EXPECT_EQ(FusedChoice(flat.tag), 0);
+}
+
+// The cloud's normal sigma follows the camera's depth noise at the tag's range, not only the
+// plane residuals (correlated stereo noise tilts a small patch and leaves small residuals).
+TEST(PointCloud, NormalSigmaFollowsTheDepthNoiseModel) {
+  const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.1, 0.05, 2.0}, 30.0, 0.0, 0.0);
+  Scene near = MakeScene(marker, 0.0, 0.0);
+  CloudPoseOptions quiet, zed;
+  quiet.depth_noise_per_m2 = 0.0;
+  ASSERT_TRUE(EstimatePoseFromPointCloud(near.cloud, near.camera.size, near.tag, quiet));
+  const double clean = near.tag.cloud.normal_sigma;
+  EXPECT_NEAR(clean, 5.0 * CV_PI / 180.0, 0.5 * CV_PI / 180.0) << "noise-free: the systematic part alone";
+  ASSERT_TRUE(EstimatePoseFromPointCloud(near.cloud, near.camera.size, near.tag, zed));
+  // 0.0018 * 2^2 = 7.2 mm over a 3.7 cm lever arm and 5 independent points: about 2.2 degrees more.
+  EXPECT_GT(near.tag.cloud.normal_sigma, clean);
+  EXPECT_LT(near.tag.cloud.normal_sigma, 7.0 * CV_PI / 180.0);
 }
 
 }  // namespace

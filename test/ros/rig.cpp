@@ -40,16 +40,17 @@ geometry_msgs::TransformStamped BodyFromOpticalTf() {
 
 sim::Camera TestCamera() { return sim::MakeCamera({640, 480}, 60.0); }
 
-Scene Render(const std::vector<sim::Marker>& markers, const sim::RenderOptions& options) {
+Scene Render(const std::vector<sim::Marker>& markers, const sim::RenderOptions& options,
+             const sim::DepthNoise& stereo) {
   Scene scene;
   scene.camera = TestCamera();
   scene.markers = markers;
   cv::Mat depth;
   scene.image = sim::RenderScene(scene.camera, markers, options, &depth);
-  // The cloud a ZED 2 would give: range-squared patchy depth noise, fattened edges, no depth on
-  // featureless patches (the render's flat paper and grey), seeded with the render.
+  // The cloud a stereo camera would give: range-squared patchy depth noise, fattened edges, no depth
+  // on featureless patches (the render's flat paper and grey), seeded with the render.
   sim::CloudOptions cloud;
-  cloud.stereo = sim::DepthNoise::Zed2();
+  cloud.stereo = stereo;
   cloud.seed = options.seed;
   scene.cloud = sim::MakeOrganizedCloud(scene.camera, depth, cloud, scene.image);
   return scene;

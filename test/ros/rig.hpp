@@ -44,7 +44,9 @@ struct Scene {
 
 /// 640x480, 60 degrees horizontal field of view, no distortion.
 sim::Camera TestCamera();
-Scene Render(const std::vector<sim::Marker>& markers, const sim::RenderOptions& options = {});
+/// The cloud comes from `stereo` (a ZED 2's stereo noise unless told otherwise).
+Scene Render(const std::vector<sim::Marker>& markers, const sim::RenderOptions& options = {},
+             const sim::DepthNoise& stereo = sim::DepthNoise::Zed2());
 
 /// What a published frame carries; the rig fills the rest from the scene.
 struct Channels {

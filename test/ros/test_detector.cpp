@@ -54,6 +54,7 @@ struct World {
   TfRecorder tf_recorder{nh};
   Collector<TagArray> fused{nh, "/fused/tags"};
   Collector<TagArray> pnp{nh, "/pnp/tags"};
+  Collector<TagArray> wide{nh, "/wide/tags"};
   Collector<TagArray> body{nh, "/body/tags"};
   Collector<TagArray> noinfo{nh, "/noinfo/tags"};
   Collector<TagArray> compressed{nh, "/compressed/tags"};
@@ -79,10 +80,14 @@ const Scene& EmptyScene() {
 
 // A frame where IPPE's lower-error solution is the mirror image, found with the renderer at start-up
 // (the core run on candidate frames decides, so the case survives changes to the renderer and the
-// detector): a marker 14-17 px wide, tilted 8-24 degrees, 5-6.2 m away, seen through a slightly
-// blurred, noisy sensor (measured: PnP picks the mirror in 16 of 300 such frames). On clean renders
-// the pattern fit resolves even 15 px markers (the synthetic core tests); with sensor noise the two
-// planar poses are within the noise, and the cloud's plane picks.
+// detector): a 0.10 m marker (id 9, tag_sizes in detector.test) 15-20 px wide, tilted 10-26 degrees,
+// 2.6-3.8 m away, seen through a slightly blurred, noisy sensor. With sensor noise the two planar
+// poses are within the noise of the corners, and the cloud's plane picks. Its cloud comes from a
+// wide-baseline (0.5 m) stereo pair, and the detector (/wide) is told that camera's noise
+// (~depth_noise): the rig's ZED 2 noise on this 640x480 camera leaves the normal
+// of so small a marker uncertain by 10-30 degrees at that range (measured: the plane lay between the
+// two solutions, 6 degrees nearer the wrong one), and then the fused choice rightly keeps PnP's pick;
+// bench/ reports how often each camera's cloud fixes or causes flips.
 const Scene& FlipScene() {
   static const Scene scene = [] {
     for (unsigned seed = 1; seed <= 300; ++seed) {
@@ -90,8 +95,9 @@ const Scene& FlipScene() {
       options.seed = seed;
       options.blur_sigma = 0.8;
       options.noise_sigma = 6.0;
-      const double yaw = 8.0 + 2.0 * (seed % 9), range = 5.0 + 0.1 * (seed % 13), roll = 7.0 + 30.0 * (seed % 12);
-      Scene candidate = Render({sim::FacingCamera(7, 0.15, {0.1, 0.05, range}, yaw, 0.3 * yaw, roll)}, options);
+      const double yaw = 10.0 + 2.0 * (seed % 9), range = 2.6 + 0.1 * (seed % 13), roll = 7.0 + 30.0 * (seed % 12);
+      Scene candidate = Render({sim::FacingCamera(9, 0.10, {0.1, 0.05, range}, yaw, 0.3 * yaw, roll)}, options,
+                               sim::DepthNoise(0.5, 0.1, 4.0, 2.0));
       if (arucotag::test::PnpPicksMirror(candidate.camera, candidate.markers[0], candidate.image)) return candidate;
     }
     return Scene();
@@ -250,11 +256,11 @@ TEST(Detector, FusedFixesWhatPnpFlips) {
   const Scene& scene = FlipScene();
   ASSERT_FALSE(scene.markers.empty()) << "no frame among 300 renders where PnP alone picks the mirror pose";
   const cv::Matx33d truth = Rotation(scene.markers[0]);
-  const auto fused = world->rig.PublishUntil(scene, world->fused, WithCloud());
+  const auto fused = world->rig.PublishUntil(scene, world->wide, WithCloud());
   ASSERT_TRUE(fused);
   const auto pnp = world->pnp.Wait(fused->header.stamp, 5.0);
-  const TagMsg* pnp_tag = Only(pnp, 7);
-  const TagMsg* fused_tag = Only(fused, 7);
+  const TagMsg* pnp_tag = Only(pnp, 9);
+  const TagMsg* fused_tag = Only(fused, 9);
   ASSERT_TRUE(pnp_tag && fused_tag);
   EXPECT_EQ(pnp_tag->pose_source, TagMsg::PNP);
   EXPECT_EQ(fused_tag->pose_source, TagMsg::FUSED);

@@ -9,6 +9,7 @@
 #include <arucotag/ArucotagDetectorConfig.h>
 #include <arucotag/aruco_tag.hpp>
 #include <arucotag/detector.hpp>
+#include <arucotag/pose.hpp>
 #include <arucotag/preprocess.hpp>
 
 namespace arucotag {
@@ -23,6 +24,7 @@ struct NodeletParameters {
   bool use_point_cloud = false;
   int queue_size = 10;
   PoseSource pose_source = PoseSource::kFused;
+  CloudPoseOptions cloud;          ///< ~depth_noise sets cloud.depth_noise_per_m2
   bool publish_tf = true;
   std::string output_frame;        ///< empty: poses stay in the image's frame
   /// TF child frame = frame_prefix + id; empty (the default): "<image frame_id>/aruco_", so two
