@@ -43,6 +43,10 @@ else
 fi
 
 echo
+echo "== pose trust: bench_pose (BENCH_POSE_FRAMES rendered frames, default 1000)"
+"${BIN}/bench_pose" --frames "${BENCH_POSE_FRAMES:-1000}" --json "${OUT}/pose.json" | tee "${OUT}/pose.md"
+
+echo
 /usr/bin/python3 "${ARUCOTAG_SRC}/bench/report.py" "${OUT}/detect.json" "${OUT}/nodelet.json" \
   --out-json "${OUT}/results.json" --out-md "${OUT}/results.md"
 echo

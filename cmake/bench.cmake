@@ -6,6 +6,10 @@ target_link_libraries(arucotag_bench_frames PUBLIC arucotag_sim arucotag_core)
 add_executable(bench_detect bench/bench_detect.cpp)
 target_link_libraries(bench_detect arucotag_bench_frames)
 
+# Pose trust: flips, rotation error, NEES and time per tag for PnP, cloud and fused.
+add_executable(bench_pose bench/bench_pose.cpp)
+target_link_libraries(bench_pose arucotag_sim arucotag_core)
+
 if(TARGET arucotag_nodelet)
   add_executable(bench_nodelet bench/bench_nodelet.cpp)
   target_include_directories(bench_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
