@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 export ARUCOTAG_BUILD ?= $(CURDIR)/build
 
-.PHONY: deps build test demo bench soak workspace-test clean
+.PHONY: deps build test sanitize demo bench soak workspace-test clean
 
 deps:
 	bash scripts/install_deps.sh
@@ -12,6 +12,11 @@ build: deps
 
 test: build
 	bash scripts/run_tests.sh
+
+# The whole suite again, built with ASan and UBSan into $(ARUCOTAG_BUILD)-sanitize; any sanitizer
+# report is a failed test (scripts/sanitize.sh).
+sanitize: deps
+	bash scripts/sanitize.sh
 
 demo: build
 	bash scripts/demo.sh

@@ -55,6 +55,13 @@ if(CATKIN_ENABLE_TESTING)
     add_dependencies(test_ros_${name} arucotag_nodelet detector_node ${PROJECT_NAME}_generate_messages_cpp)
   endforeach()
 
+  # Malformed input of every kind, one freshly loaded detector per case (bad_input.test).
+  add_rostest_gtest(test_ros_bad_input test/ros/bad_input.test test/ros/test_bad_input.cpp test/ros/rig.cpp)
+  target_include_directories(test_ros_bad_input PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(test_ros_bad_input SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(test_ros_bad_input arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
+  add_dependencies(test_ros_bad_input arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+
   # Stamp patterns of real drivers and bags, on the real photos in test/data.
   add_rostest_gtest(test_ros_stamps test/ros/stamps.test test/ros/test_stamps.cpp test/ros/rig.cpp)
   target_include_directories(test_ros_stamps PRIVATE ${ARUCOTAG_ROS_INCLUDES})

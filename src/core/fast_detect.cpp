@@ -481,7 +481,7 @@ cv::Point2f RefineCorner(const cv::Mat& grey, cv::Point2f start, int half, int m
     const int ix = cvFloor(cx), iy = cvFloor(cy);
     const float a = cx - ix, bf = cy - iy;
     const float a11 = (1.f - a) * (1.f - bf), a12 = a * (1.f - bf), a21 = (1.f - a) * bf, a22 = a * bf;
-    // The SIMD loads read 4 bytes from each of the last columns: stay a vector inside the frame.
+    // The SIMD loads read 8 bytes from each of the last columns: stay that far inside the frame.
     const bool inside = ix >= 0 && iy >= 0 && ix + stride + 4 < grey.cols && iy + patch_rows < grey.rows;
     for (int i = 0; i < patch_rows; ++i) {
       float* out = &buffer[static_cast<size_t>(i) * stride];
@@ -491,8 +491,13 @@ cv::Point2f RefineCorner(const cv::Mat& grey, cv::Point2f start, int half, int m
 #if CV_SIMD128
         const cv::v_float32x4 w11 = cv::v_setall_f32(a11), w12 = cv::v_setall_f32(a12), w21 = cv::v_setall_f32(a21),
                               w22 = cv::v_setall_f32(a22);
+        // 4 pixels from any byte address. Not v_load_expand_q: it reads them as one int
+        // (*(const int*)p), undefined at an odd address and reported by UBSan. v_load_expand's
+        // 8-byte load takes any address and costs the same; the upper 4 are dropped.
         const auto load = [](const uchar* p) {
-          return cv::v_cvt_f32(cv::v_reinterpret_as_s32(cv::v_load_expand_q(p)));
+          cv::v_uint32x4 low, high;
+          cv::v_expand(cv::v_load_expand(p), low, high);
+          return cv::v_cvt_f32(cv::v_reinterpret_as_s32(low));
         };
         for (int j = 0; j < stride; j += 4) {
           cv::v_store(out + j, load(r0 + j) * w11 + load(r0 + j + 1) * w12 + load(r1 + j) * w21 + load(r1 + j + 1) * w22);

@@ -158,6 +158,7 @@ class DetectorNodelet : public nodelet::Nodelet {
     size_t received = 0, processed = 0, skipped = 0, with_cloud = 0, without_cloud = 0, tf_dropped = 0;
     size_t waited_for_info = 0, without_info = 0, infos = 0, clouds = 0, stale_info = 0;
     size_t zero_stamps = 0, repeated_stamps = 0, time_jumps = 0, tf_repeats = 0;
+    size_t no_frame_id = 0, bad_clouds = 0, clouds_without_depth = 0, reconfigure_rejected = 0;
   } counts_;
   std::deque<Clock::time_point> arrivals_;
   std::deque<double> processing_ms_, latency_ms_;
@@ -423,6 +424,10 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
     Fail("image " + image->encoding, std::string("frame skipped: ") + e.what());
     return;
   }
+  if (header.frame_id.empty()) {
+    ++counts_.no_frame_id;
+    Fail("no frame_id", "image has no frame_id: its tags go out without a frame and no TF (set the driver's frame_id)");
+  }
   std::optional<geometry_msgs::TransformStamped> to_output;
   if (!params_.output_frame.empty() && params_.output_frame != header.frame_id) {
     try {
@@ -446,6 +451,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
   for (auto& tag : tags) Measure(tag, camera, points, size);
   if (!points.empty() && !tags.empty() &&
       std::none_of(tags.begin(), tags.end(), [](const ArucoTag& tag) { return tag.cloud.valid; })) {
+    ++counts_.clouds_without_depth;
     Warn("cloud without depth", "the point cloud has too few finite points on every tag (NaN or inf there: no "
                                 "depth, or the cloud is all NaN): poses from PnP alone");
   }
@@ -523,6 +529,7 @@ cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_ms
     Warn("cloud tf", "point cloud not used (PnP alone): no transform " + image_header.frame_id + " <- " +
                          cloud->header.frame_id + " at the cloud's stamp: " + e.what());
   } catch (const std::exception& e) {
+    ++counts_.bad_clouds;
     Fail("cloud", std::string("point cloud not used (PnP alone): ") + e.what());
   }
   return {};
@@ -563,10 +570,7 @@ std::string DetectorNodelet::ChildFramePrefix(const std::string& camera_frame) c
 }
 
 void DetectorNodelet::PublishTf(const ArucoTagArray& array) {
-  if (array.header.frame_id.empty()) {
-    Warn("tf no frame_id", "image has no frame_id: no TF published");
-    return;
-  }
+  if (array.header.frame_id.empty()) return;  // Process reported it
   // A post shows one id on several faces; TF gets only the best-measured face per id.
   std::map<int, const ArucoTagMsg*> best;
   for (const auto& tag : array.tags) {
@@ -601,7 +605,11 @@ void DetectorNodelet::OnReconfigure(ArucotagDetectorConfig& config, uint32_t) {
     params_.detector = detector;
     params_.preprocess = preprocess;
   } catch (const std::exception& e) {
-    NODELET_ERROR("dynamic_reconfigure rejected: %s; keeping the previous settings", e.what());
+    // Not throttled: each request is someone's deliberate action and deserves its answer.
+    ++counts_.reconfigure_rejected;
+    last_error_ = std::string("dynamic_reconfigure rejected: ") + e.what() + "; keeping the previous settings";
+    last_error_time_ = Clock::now();
+    NODELET_ERROR("%s", last_error_.c_str());
     config = ToReconfigure(params_.detector, params_.preprocess);  // report what is really in use
   }
 }
@@ -671,6 +679,10 @@ void DetectorNodelet::Diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat
   status.add("repeated stamps", c.repeated_stamps);
   status.add("stamps going back (loops)", c.time_jumps);
   status.add("TF not resent for a repeated stamp", c.tf_repeats);
+  status.add("frames without frame_id", c.no_frame_id);
+  status.add("frames whose cloud was rejected (bad input)", c.bad_clouds);
+  status.add("frames whose cloud has no depth on any tag", c.clouds_without_depth);
+  status.add("reconfigure requests rejected", c.reconfigure_rejected);
   status.add("last error", last_error_.empty() ? "none" : last_error_);
   status.add("last warning", last_warning_.empty() ? "none" : last_warning_);
 }
