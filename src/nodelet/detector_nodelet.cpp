@@ -130,7 +130,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   image_transport::Subscriber image_sub_;
   ros::Subscriber compressed_sub_, info_sub_, cloud_sub_;
   std::atomic<bool> reset_inputs_{true};
-  Transport reading_ = Transport::kAuto;  // with ~image_transport auto: the transport chosen so far
+  Transport reading_ = Transport::kAuto;  // with ~image_transport auto: the transport chosen so far (connect_mutex_)
   ros::Time last_image_stamp_;
   CameraInfoConstPtr latest_info_;
   std::unique_ptr<message_filters::Cache<PointCloud2>> clouds_;
@@ -270,6 +270,7 @@ void DetectorNodelet::Subscribe() {
     // No compressed_image_transport on Debian: take the plugin's topic and decode here.
     compressed_sub_ = nh_.subscribe(nh_.resolveName("image") + "/compressed", q, &DetectorNodelet::OnCompressed, this);
   }
+  reading_ = Transport::kAuto;  // a fresh subscription chooses its transport again
   info_sub_ = nh_.subscribe("camera_info", q, &DetectorNodelet::OnInfo, this);
   if (params_.use_point_cloud) cloud_sub_ = nh_.subscribe("points", q, &DetectorNodelet::OnCloud, this);
   reset_inputs_ = true;
@@ -349,9 +350,8 @@ void DetectorNodelet::CheckStamp(const ros::Time& stamp) {
 }
 
 void DetectorNodelet::KeepTransport(Transport from) {
-  if (reading_ == from) return;
   std::lock_guard<std::mutex> lock(connect_mutex_);
-  if (!subscribed_) return;
+  if (!subscribed_ || reading_ == from) return;
   const std::string topic = nh_.resolveName("image");
   if (from == Transport::kRaw) {
     compressed_sub_.shutdown();
