@@ -143,6 +143,14 @@ cv::Mat MakeOrganizedCloud(const Camera& cam, const cv::Mat& depth, const CloudO
 // Rx(pitch) * Rz(roll); returns a marker whose printed face looks straight at
 // the camera's image plane (upright, x right, y up in the image) when all
 // angles are 0. roll is the in-plane rotation; yaw/pitch tilt it.
+// An organized cloud (CV_32FC3, optical frame) of flat markers in front of a wall, for a camera
+// with intrinsics K and distortion D (OpenCV order) seeing image_size: each point lies on the ray
+// through its pixel centre, on a marker's plane within 0.7 sides of its centre, else on a wall
+// `wall_depth` m away. `factor` image pixels per cloud point (a depth camera at a fraction of the
+// image's resolution); no noise. For real photos whose marker poses are known.
+cv::Mat MarkerPlanesCloud(const cv::Matx33d& K, const std::vector<double>& D, cv::Size image_size, int factor,
+                          const std::vector<Marker>& markers, double wall_depth);
+
 Marker FacingCamera(int id, double side, cv::Vec3d position, double yaw_deg = 0.0,
                     double pitch_deg = 0.0, double roll_deg = 0.0);
 

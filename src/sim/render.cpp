@@ -734,4 +734,32 @@ Marker RandomMarker(cv::RNG& rng, const Camera& cam, int id, double side, double
   return FacingCamera(id, side, cv::Vec3d(0, 0, 0.5 * (min_range + max_range)));
 }
 
+cv::Mat MarkerPlanesCloud(const cv::Matx33d& K, const std::vector<double>& D, cv::Size image_size, int factor,
+                          const std::vector<Marker>& markers, double wall_depth) {
+  const cv::Size size(image_size.width / factor, image_size.height / factor);
+  std::vector<cv::Point2f> pixels, rays;
+  for (int v = 0; v < size.height; ++v)
+    for (int u = 0; u < size.width; ++u) pixels.emplace_back((u + 0.5f) * factor - 0.5f, (v + 0.5f) * factor - 0.5f);
+  cv::undistortPoints(pixels, rays, K, D);
+  std::vector<cv::Matx33d> rotations;
+  for (const auto& m : markers) {
+    rotations.emplace_back();
+    cv::Rodrigues(m.rvec, rotations.back());
+  }
+  cv::Mat points(size, CV_32FC3);
+  for (int i = 0; i < static_cast<int>(rays.size()); ++i) {
+    const cv::Vec3d ray(rays[i].x, rays[i].y, 1.0);
+    cv::Vec3d point = ray * wall_depth;
+    for (size_t k = 0; k < markers.size(); ++k) {
+      const cv::Matx33d& r = rotations[k];
+      const cv::Vec3d normal(r(0, 2), r(1, 2), r(2, 2));
+      const cv::Vec3d hit = ray * (normal.dot(markers[k].tvec) / normal.dot(ray));
+      const cv::Vec3d local = r.t() * (hit - markers[k].tvec);
+      if (std::abs(local[0]) < 0.7 * markers[k].side && std::abs(local[1]) < 0.7 * markers[k].side) point = hit;
+    }
+    points.at<cv::Vec3f>(i / size.width, i % size.width) = cv::Vec3f(point);
+  }
+  return points;
+}
+
 }  // namespace arucotag::sim

@@ -125,29 +125,17 @@ sensor_msgs::PointCloud2Ptr PhotoCloud(const Photo& photo, const ros::Time& stam
   static std::map<int, cv::Mat> made;
   cv::Mat& points = made[factor];
   if (points.empty()) {
-    const cv::Size size(photo.bgr.cols / factor, photo.bgr.rows / factor);
-    std::vector<cv::Point2f> pixels;
-    for (int v = 0; v < size.height; ++v)
-      for (int u = 0; u < size.width; ++u) pixels.emplace_back((u + 0.5f) * factor - 0.5f, (v + 0.5f) * factor - 0.5f);
-    std::vector<cv::Point2f> rays;
-    cv::undistortPoints(pixels, rays, kK, kD);
-    std::vector<std::pair<cv::Matx33d, cv::Vec3d>> poses;
+    std::vector<sim::Marker> markers;
     for (const auto& [id, corners] : photo.corners) {
-      poses.emplace_back();
-      ReferencePose(corners, poses.back().first, poses.back().second);
+      cv::Matx33d r;
+      sim::Marker m;
+      m.id = id;
+      m.side = kSide;
+      ReferencePose(corners, r, m.tvec);
+      cv::Rodrigues(r, m.rvec);
+      markers.push_back(m);
     }
-    points.create(size, CV_32FC3);
-    for (int i = 0; i < static_cast<int>(rays.size()); ++i) {
-      const cv::Vec3d ray(rays[i].x, rays[i].y, 1.0);
-      cv::Vec3d point = ray * 1.5;
-      for (const auto& [r, t] : poses) {
-        const cv::Vec3d normal(r(0, 2), r(1, 2), r(2, 2));
-        const cv::Vec3d hit = ray * (normal.dot(t) / normal.dot(ray));
-        const cv::Vec3d local = r.t() * (hit - t);
-        if (std::abs(local[0]) < 0.7 * kSide && std::abs(local[1]) < 0.7 * kSide) point = hit;
-      }
-      points.at<cv::Vec3f>(i / size.width, i % size.width) = cv::Vec3f(point);
-    }
+    points = sim::MarkerPlanesCloud(kK, kD, photo.bgr.size(), factor, markers, 1.5);
   }
   return Rig::CloudMessage(points, stamp, kFrame);
 }

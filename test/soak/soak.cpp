@@ -36,6 +36,7 @@
 #include <sensor_msgs/PointField.h>
 
 #include <arucotag/arucotag.hpp>
+#include <arucotag/sim.hpp>
 
 namespace arucotag::soak {
 namespace {
@@ -144,10 +145,9 @@ Frame MakeFrame(const std::string& path) {
   for (auto& tag : tags) EstimatePoseFromPNP(camera, tag);
   if (tags.size() != 2) throw Error("expected the photo's two markers, found " + std::to_string(tags.size()));
 
-  std::vector<cv::Point2f> pixels, rays;
-  for (int v = 0; v < bgr.rows; ++v)
-    for (int u = 0; u < bgr.cols; ++u) pixels.emplace_back(u, v);
-  cv::undistortPoints(pixels, rays, K, D);
+  std::vector<sim::Marker> markers;
+  for (const auto& tag : tags) markers.push_back({tag.id, tag.side_length, tag.rvec, tag.tvec});
+  const cv::Mat points = sim::MarkerPlanesCloud(K, D, bgr.size(), 1, markers, 1.5);  // a wall behind them
   f.cloud.height = bgr.rows;
   f.cloud.width = bgr.cols;
   const char* names[] = {"x", "y", "z"};
@@ -163,19 +163,8 @@ Frame MakeFrame(const std::string& path) {
   f.cloud.row_step = f.cloud.point_step * f.cloud.width;
   f.cloud.is_dense = true;
   f.cloud.data.assign(static_cast<size_t>(f.cloud.row_step) * f.cloud.height, 0);
-  for (size_t i = 0; i < rays.size(); ++i) {
-    const cv::Vec3d ray(rays[i].x, rays[i].y, 1.0);
-    cv::Vec3d point = ray * 1.5;  // a wall behind the markers
-    for (const auto& tag : tags) {
-      cv::Matx33d r;
-      cv::Rodrigues(tag.rvec, r);
-      const cv::Vec3d normal(r(0, 2), r(1, 2), r(2, 2));
-      const cv::Vec3d hit = ray * (normal.dot(tag.tvec) / normal.dot(ray));
-      const cv::Vec3d local = r.t() * (hit - tag.tvec);
-      if (std::abs(local[0]) < 0.7 * tag.side_length && std::abs(local[1]) < 0.7 * tag.side_length) point = hit;
-    }
-    const float xyz[3] = {float(point[0]), float(point[1]), float(point[2])};
-    std::memcpy(&f.cloud.data[i * f.cloud.point_step], xyz, sizeof(xyz));
+  for (int i = 0; i < static_cast<int>(points.total()); ++i) {
+    std::memcpy(&f.cloud.data[i * f.cloud.point_step], &points.at<cv::Vec3f>(i / points.cols, i % points.cols), 12);
   }
   return f;
 }
