@@ -3,12 +3,15 @@
 // blur, and an organized cloud with a ZED 2's stereo depth noise (sim::DepthNoise::Zed2(): sigma_z =
 // z^2 0.15 px / (f B), correlated in patches, holes, fattened edges). For each detected marker it
 // solves PnP, the cloud pose and the fused pose, and reports per range bin: flipped poses (rotation
-// error > 10 degrees) for each, the median rotation error, the mean NEES of PnP's translation and
-// rotation against its covariance (3 is calibrated; flipped poses left out), and the time per tag.
+// error > 10 degrees) for each, the median rotation error, the mean NEES of each one's translation
+// and rotation against its own covariance (3 is calibrated; PnP and fused flips left out), and the
+// time per tag. --csv writes one row per detected marker (geometry, corner noise, errors, NEES) for
+// calibrating the covariances.
 //
-//   bench_pose [--frames 1000] [--json FILE] [--seed 7]
+//   bench_pose [--frames 1000] [--json FILE] [--csv FILE] [--seed 7]
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <string>
@@ -51,7 +54,7 @@ struct Bin {
   int flips[kMethods] = {0, 0, 0};
   int fused_fixed = 0, fused_broke = 0;  // fused against PnP on the same tag
   std::vector<double> rotation[kMethods];
-  std::vector<double> nees_t, nees_r;
+  std::vector<double> nees_t[kMethods], nees_r[kMethods];
 };
 
 double Median(std::vector<double> v) {
@@ -66,14 +69,18 @@ double Mean(const std::vector<double>& v) {
   return v.empty() ? std::nan("") : sum / v.size();
 }
 
+// JSON has no NaN: an empty bin's mean is null.
+std::string JsonNumber(double value) { return std::isfinite(value) ? std::to_string(value) : "null"; }
+
 int Main(int argc, char** argv) {
   int frames = 1000;
   unsigned seed = 7;
-  std::string json;
+  std::string json, csv_path;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string arg = argv[i];
     if (arg == "--frames") frames = std::stoi(argv[i + 1]);
     else if (arg == "--json") json = argv[i + 1];
+    else if (arg == "--csv") csv_path = argv[i + 1];
     else if (arg == "--seed") seed = static_cast<unsigned>(std::stoul(argv[i + 1]));
     else throw Error("unknown option " + arg);
   }
@@ -85,6 +92,14 @@ int Main(int argc, char** argv) {
   CloudPoseOptions cloud_options;
   cloud_options.depth_noise_per_m2 = 0.15 / (camera.K(0, 0) * 0.12);  // the ZED 2 the cloud is made with
 
+  FILE* csv = csv_path.empty() ? nullptr : std::fopen(csv_path.c_str(), "w");
+  if (!csv_path.empty() && !csv) throw Error("cannot write " + csv_path);
+  if (csv) {
+    std::fprintf(csv, "frame,range,obliquity,side_px,min_side_px,min_angle,noise,blur,corner_sigma,rms0,rms1,ambiguity,cloud_points,"
+                      "plane_rms,fused,cloud_err_ray,cloud_err_lateral");
+    for (const char* m : kMethodNames) std::fprintf(csv, ",%s_rot_deg,%s_t_err,%s_nees_t,%s_nees_r", m, m, m, m);
+    std::fprintf(csv, "\n");
+  }
   Bin bins[kBinCount];
   double time_ms[kMethods] = {0, 0, 0};
   int timed = 0, missed = 0;
@@ -145,29 +160,73 @@ int Main(int argc, char** argv) {
     }
     bin.fused_fixed += flipped[0] && !flipped[2];
     bin.fused_broke += !flipped[0] && flipped[2];
-    if (!flipped[0] && pnp.pose_source == PoseSource::kPnp) {
+    // NEES of each pose against its own covariance. A PnP (or fused) flip is left out: the
+    // covariance describes its own solution's neighbourhood, the flip is `ambiguity`'s to report.
+    // The cloud has no second solution, so all of its poses count.
+    double nees[kMethods][2];
+    for (int m = 0; m < kMethods; ++m) {
+      nees[m][0] = nees[m][1] = std::nan("");
+      if (!poses[m] || !poses[m]->HasPose()) continue;
+      const ArucoTag& tag = *poses[m];
       cv::Matx33d r_true, r_est;
       cv::Rodrigues(truth.rvec, r_true);
-      cv::Rodrigues(pnp.rvec, r_est);
+      cv::Rodrigues(tag.rvec, r_est);
       cv::Vec3d dtheta;
       cv::Rodrigues(r_true * r_est.t(), dtheta);
-      bin.nees_t.push_back(Nees(truth.tvec - pnp.tvec, pnp.covariance, 0));
-      bin.nees_r.push_back(Nees(dtheta, pnp.covariance, 3));
+      nees[m][0] = Nees(truth.tvec - tag.tvec, tag.covariance, 0);
+      nees[m][1] = Nees(dtheta, tag.covariance, 3);
+      if (m != 1 && flipped[m]) continue;
+      bin.nees_t[m].push_back(nees[m][0]);
+      if (tag.orientation_measured) bin.nees_r[m].push_back(nees[m][1]);
+    }
+    if (csv) {
+      double side_px = 0.0, min_side_px = 1e9, min_angle = 180.0;
+      for (int k = 0; k < 4; ++k) {
+        const cv::Point2d a = found->corners[(k + 1) % 4] - found->corners[k];
+        const cv::Point2d b = found->corners[(k + 3) % 4] - found->corners[k];
+        side_px += 0.25 * cv::norm(a);
+        min_side_px = std::min(min_side_px, cv::norm(a));
+        min_angle = std::min(min_angle, std::acos(a.dot(b) / (cv::norm(a) * cv::norm(b))) * 180.0 / CV_PI);
+      }
+      cv::Matx33d r_true;
+      cv::Rodrigues(truth.rvec, r_true);
+      const double obliquity =
+          std::acos(std::abs(cv::Vec3d(r_true(0, 2), r_true(1, 2), r_true(2, 2)).dot(cv::normalize(truth.tvec)))) *
+          180.0 / CV_PI;
+      std::fprintf(csv, "%d,%.4f,%.2f,%.2f,%.2f,%.2f,%.3f,%.3f,%.5f,%.5f,%.5f,%.4f", f, range, obliquity, side_px,
+                   min_side_px, min_angle,
+                   render.noise_sigma, render.blur_sigma, pnp.pnp.corner_sigma, pnp.pnp.rms[0], pnp.pnp.rms[1],
+                   pnp.pnp.ambiguity);
+      const cv::Vec3d ray = cv::normalize(truth.tvec), cloud_error = cloud_only.cloud.centre - truth.tvec;
+      std::fprintf(csv, ",%d,%.5f,%d,%.5f,%.5f", cloud_only.cloud.points, cloud_only.cloud.plane_rms,
+                   fused.pose_source == PoseSource::kFused, cloud_error.dot(ray),
+                   cv::norm(cloud_error - cloud_error.dot(ray) * ray));
+      for (int m = 0; m < kMethods; ++m) {
+        const double rot = poses[m] && poses[m]->HasPose() ? RotationDeg(poses[m]->rvec, truth.rvec) : std::nan("");
+        const double dt = poses[m] && poses[m]->HasPose() ? cv::norm(poses[m]->tvec - truth.tvec) : std::nan("");
+        std::fprintf(csv, ",%.4f,%.5f,%.4f,%.4f", rot, dt, nees[m][0], nees[m][1]);
+      }
+      std::fprintf(csv, "\n");
     }
   }
+  if (csv) std::fclose(csv);
 
   std::printf("Pose trust: %d rendered frames (1280x720, 65 deg, 0.15 m marker at 1-15 m, 0-70 deg off head-on, "
               "noise 0-4, blur 0-1 px; ZED 2 stereo cloud), %d detected, %d missed.\n\n",
               frames, timed, missed);
-  std::printf("| range | tags | flips pnp | flips cloud | flips fused | fused fixed / broke | median rot err pnp / "
-              "cloud / fused (deg) | NEES pnp t / r (3 = calibrated) |\n|---|---|---|---|---|---|---|---|\n");
+  std::printf("| range | tags | flips pnp / cloud / fused | fused fixed / broke | median rot err pnp / cloud / fused "
+              "(deg) | NEES t pnp / cloud / fused | NEES r pnp / cloud / fused |\n|---|---|---|---|---|---|---|\n");
   for (int b = 0; b < kBinCount; ++b) {
     const Bin& bin = bins[b];
-    std::printf("| %g-%g m | %d | %d | %d | %d | %d / %d | %.2f / %.2f / %.2f | %.2f / %.2f |\n", kBins[b], kBins[b + 1],
-                bin.tags, bin.flips[0], bin.flips[1], bin.flips[2], bin.fused_fixed, bin.fused_broke,
-                Median(bin.rotation[0]), Median(bin.rotation[1]), Median(bin.rotation[2]), Mean(bin.nees_t),
-                Mean(bin.nees_r));
+    std::printf("| %g-%g m | %d | %d / %d / %d | %d / %d | %.2f / %.2f / %.2f | %.2f / %.2f / %.2f | %.2f / %.2f / %.2f |\n",
+                kBins[b], kBins[b + 1], bin.tags, bin.flips[0], bin.flips[1], bin.flips[2], bin.fused_fixed,
+                bin.fused_broke, Median(bin.rotation[0]), Median(bin.rotation[1]), Median(bin.rotation[2]),
+                Mean(bin.nees_t[0]), Mean(bin.nees_t[1]), Mean(bin.nees_t[2]), Mean(bin.nees_r[0]),
+                Mean(bin.nees_r[1]), Mean(bin.nees_r[2]));
   }
+  std::printf("\nNEES: mean normalised estimation error squared of translation (t) and rotation (r) against the "
+              "pose's own covariance; 3 is calibrated, [1.5, 6] the target. PnP and fused flips are left out (the "
+              "flip is `ambiguity`'s to report), every cloud pose counts; rotations only where measured.\n");
   std::printf("\nTime per tag: pnp %.3f ms, cloud %.3f ms, fused %.3f ms (pnp + cloud + choice).\n",
               time_ms[0] / std::max(1, timed), time_ms[1] / std::max(1, timed), time_ms[2] / std::max(1, timed));
   if (!json.empty()) {
@@ -177,8 +236,12 @@ int Main(int argc, char** argv) {
       const Bin& bin = bins[b];
       out << (b ? ", " : "") << "{\"from_m\": " << kBins[b] << ", \"to_m\": " << kBins[b + 1] << ", \"tags\": " << bin.tags;
       for (int m = 0; m < kMethods; ++m) out << ", \"flips_" << kMethodNames[m] << "\": " << bin.flips[m];
-      out << ", \"fused_fixed\": " << bin.fused_fixed << ", \"fused_broke\": " << bin.fused_broke
-          << ", \"nees_t\": " << Mean(bin.nees_t) << ", \"nees_r\": " << Mean(bin.nees_r) << "}";
+      out << ", \"fused_fixed\": " << bin.fused_fixed << ", \"fused_broke\": " << bin.fused_broke;
+      for (int m = 0; m < kMethods; ++m) {
+        out << ", \"nees_t_" << kMethodNames[m] << "\": " << JsonNumber(Mean(bin.nees_t[m])) << ", \"nees_r_"
+            << kMethodNames[m] << "\": " << JsonNumber(Mean(bin.nees_r[m]));
+      }
+      out << "}";
     }
     out << "], \"ms_per_tag\": {\"pnp\": " << time_ms[0] / std::max(1, timed) << ", \"cloud\": "
         << time_ms[1] / std::max(1, timed) << ", \"fused\": " << time_ms[2] / std::max(1, timed) << "}}\n";

@@ -20,7 +20,7 @@ enum class PoseSource {
   kNone = 0,        ///< no pose: ids and corners only
   kPnp = 1,         ///< perspective-n-point on the four corners
   kPointCloud = 2,  ///< organized point cloud only
-  kFused = 3,       ///< PnP solution chosen and checked with the point cloud's depth
+  kFused = 3,       ///< PnP solution chosen by the point cloud's plane, updated by its centre
 };
 
 /// Lower-case name of a pose source ("none", "pnp", "point_cloud", "fused").
@@ -71,7 +71,8 @@ struct CloudResult {
   /// plus a systematic 5 degrees. What FusedChoice weighs the cloud's evidence by.
   double normal_sigma = std::numeric_limits<double>::quiet_NaN();
   /// Covariance of (centre, rotation) in the optical frame, from the fit's residuals and point
-  /// count. Without a rotation the rotation block is unknown (pi^2 on its diagonal, no correlation).
+  /// count, widened for correlated stereo noise (CloudPoseOptions::depth_noise_per_m2). Without a
+  /// rotation the rotation block is unknown (pi^2 on its diagonal, no correlation).
   PoseCovariance covariance = UnknownCovariance();
 };
 

@@ -98,7 +98,8 @@ struct CloudPoseOptions {
 /// quadrilateral shrunk by options.shrink, fits the marker plane robustly (outliers rejected by
 /// their residual), takes the centre where the fit puts the marker centre, the face normal and,
 /// with enough points, the in-plane orientation, and the covariance of centre and rotation from the
-/// fit's residuals and point count. Fills tag.cloud and then the tag's pose (see
+/// fit's residuals and point count, widened for correlated stereo noise by the camera's depth-noise
+/// model (options.depth_noise_per_m2). Fills tag.cloud and then the tag's pose (see
 /// ResolvePose). Returns false with tag.cloud.valid false when fewer than options.min_points finite
 /// points exist (the pose falls back to PnP if the tag has one, else none): it never produces a
 /// number made of NaNs. Throws arucotag::Error when the cloud is
@@ -124,9 +125,11 @@ int FusedChoice(const ArucoTag& tag);
 /// - kPointCloud: the cloud's centre and orientation with the cloud's covariance (PnP's rotation
 ///   and rotation covariance fill in when the cloud could not recover one; with neither, the
 ///   orientation is a guess facing the camera and orientation_measured is false).
-/// - kFused: the IPPE solution whose face normal agrees with the cloud's plane (no flipped poses),
-///   with depth_disagreement between PnP and cloud ranges; the pose is that PnP solution, and so is
-///   its covariance.
+/// - kFused: the IPPE solution FusedChoice picks (no flipped poses), with depth_disagreement between
+///   PnP and cloud ranges, then updated by the cloud's centre as a Kalman measurement weighed by the
+///   two covariances (PnP's centre-rotation correlation carries it into the rotation too); a centre
+///   more than the chi-square 99.9 % gate away (another surface, a stale cloud) is left out and the
+///   pose and covariance are that PnP solution's.
 /// Falls back to whatever is available when `wanted` is not; kNone clears the pose. Returns the
 /// source actually used.
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted);

@@ -127,16 +127,20 @@ constexpr double kNegligibleRms = 0.01;
 constexpr double kSameMinimumRad = 1e-3;
 // Prior on the corner noise (px per coordinate) and the residual degrees of freedom it weighs as:
 // the four corners leave only 2 degrees of freedom of residual, too few to trust alone (a 2-dof
-// variance estimate is below a tenth of the truth one time in ten). Measured on 500 rendered frames
-// (1-15 m, 0-70 degrees, blur 0-1.2 px, noise 0-4 grey levels): the whole-pattern fit of small
-// markers scatters about 0.01 px, the edge fit of large blurred ones up to 0.02 px, hence the
-// growth with the side above kCornerSigmaPriorSide px. Calibrated so the mean NEES per range bin
-// lies within [0.5, 2] x 3 (PoseCovariance.PnpNeesPerRangeBin). Real lenses and calibrations add
-// error the renders do not have; the residual term carries part of it.
+// variance estimate is below a tenth of the truth one time in ten), and most of a corner's error
+// moves the pose rather than the residual. Measured on 1000 rendered frames (bench_pose: 1-15 m,
+// 0-70 degrees, blur 0-1 px, noise 0-4 grey levels): markers of 20-40 px scatter about 0.009 px;
+// larger ones more (the edge fit of large blurred edges), growing as side^0.75 above
+// kCornerSigmaPriorSide; smaller ones too (12-15 px blurred markers scatter about 0.1 px in the
+// worst cases), growing as 1 / side^2 below kCornerSigmaSmallSide. With this prior the mean NEES of
+// translation and rotation per range bin (1-3, 3-6, 6-10, 10-15 m) is 3.5/3.1, 1.6/2.6, 2.6/3.5,
+// 4.0/3.6 (3 is calibrated; `make bench` prints it). Real lenses and calibrations add error the
+// renders do not have; the residual term carries part of it.
 constexpr double kCornerSigmaPrior = 0.009;
 constexpr double kCornerSigmaPriorSide = 40.0;
 constexpr double kCornerSigmaPriorGrowth = 0.75;
-constexpr double kCornerSigmaPriorDof = 6.0;
+constexpr double kCornerSigmaSmallSide = 16.0;
+constexpr double kCornerSigmaPriorDof = 2.0;
 
 using Jacobian = cv::Matx<double, 8, 6>;
 
@@ -314,8 +318,9 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   // unknowns) pooled with the prior. The second solution's residual is its own misfit, not noise.
   double side_px = 0.0;
   for (size_t k = 0; k < image.size(); ++k) side_px += 0.25 * cv::norm(image[(k + 1) % image.size()] - image[k]);
-  const double prior_sigma =
-      kCornerSigmaPrior * std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth);
+  const double prior_sigma = kCornerSigmaPrior *
+                             std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth) *
+                             std::pow(std::max(1.0, kCornerSigmaSmallSide / std::max(side_px, 1.0)), 2);
   const double prior = kCornerSigmaPriorDof * prior_sigma * prior_sigma;
   result.corner_sigma = std::sqrt((prior + pair[0].SumSq()) / (kCornerSigmaPriorDof + 2.0));
   for (size_t i = 0; i < pair.size() && i < 2; ++i) {
@@ -437,6 +442,17 @@ namespace {
 // Plane-fit residuals are correlated in patches (stereo block matching): no more independent
 // points than this count towards the normal's precision.
 constexpr double kMaxIndependentPoints = 25.0;
+// Correlated stereo noise: the tag's points move together in patches of about this many points...
+constexpr double kPointsPerCentrePatch = 40.0;
+// ...no more than this many patches average out in the centre's depth...
+constexpr double kCentreIndependentPatches = 25.0;
+// ...and the centre moves across the line of sight by this share of its motion along it.
+constexpr double kCentreAcrossShare = 0.1;
+// The cloud rotation's systematic error (rad) in its covariance: calibration between the depth and
+// the colour image. The fused choice assumes more (kNormalSystematic) to stay on the safe side.
+constexpr double kRotationSystematic = 1.5 * CV_PI / 180.0;
+// A normal from noise alone is still a direction facing the camera: its error is bounded.
+constexpr double kMaxRotationSigma = 0.8;
 // Corner noise never assumed below this (px): the edge and pattern fits reach 0.03-0.09 px (p95) on
 // renders; real, compressed images are noisier.
 constexpr double kMinCornerSigma = 0.1;
@@ -467,6 +483,34 @@ double NormalSigma(const ArucoTag& tag, const CloudResult& cloud, const CloudPos
   const double z = cv::norm(cloud.centre);
   const double depth_sigma = std::max({cloud.plane_rms, options.depth_noise_per_m2 * z * z, 1e-4});
   return std::hypot(depth_sigma / (extent * std::sqrt(n)), kNormalSystematic);
+}
+
+// The plane fit's covariance (independent points) widened by what correlated stereo noise does: the
+// whole patch moves along the line of sight by about the camera's depth noise at that range over
+// the square root of the independent patches on the tag, and a tenth of that across it; the face
+// tilts by the normal's sigma about any axis (the in-plane direction comes from the same points'
+// depths), with a smaller systematic part than the fused choice's (kRotationSystematic) and at
+// most kMaxRotationSigma. Cross terms between centre and rotation are dropped with the widening.
+// On 1000 rendered frames with a ZED 2's noise (bench_pose) this brings the cloud's mean NEES per
+// range bin from hundreds-thousands (the plane fit's alone) into [1.5, 6].
+PoseCovariance CloudCovariance(const PoseCovariance& plane, const CloudResult& cloud, const CloudPoseOptions& options) {
+  if (!std::isfinite(plane(0, 0))) return plane;
+  const double z = cv::norm(cloud.centre);
+  const double patches = std::clamp(cloud.points / kPointsPerCentrePatch, 1.0, kCentreIndependentPatches);
+  const double along = options.depth_noise_per_m2 * z * z / std::sqrt(patches);
+  const double across = kCentreAcrossShare * along;
+  const cv::Vec3d ray = cloud.centre / std::max(z, 1e-9);
+  const double tilt_noise = std::sqrt(std::max(0.0, std::pow(cloud.normal_sigma, 2) - std::pow(kNormalSystematic, 2)));
+  const double tilt = std::min(std::hypot(tilt_noise, kRotationSystematic), kMaxRotationSigma);
+  PoseCovariance covariance = PoseCovariance::zeros();
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      const double identity = i == j ? 1.0 : 0.0;
+      covariance(i, j) = plane(i, j) + along * along * ray[i] * ray[j] + across * across * (identity - ray[i] * ray[j]);
+      covariance(3 + i, 3 + j) = plane(3 + i, 3 + j) + identity * tilt * tilt;
+    }
+  }
+  return covariance;
 }
 
 }  // namespace
@@ -548,13 +592,13 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
     result.normal = normal;
     result.has_normal = true;
     result.has_rotation = true;
-    result.covariance = PlaneCovariance(samples, use, c, ex, ey);
     double sum_sq = 0.0;
     for (size_t i = 0; i < samples.size(); ++i) {
       if (use[i]) sum_sq += std::pow((samples[i].xyz - c).dot(normal), 2);
     }
     result.plane_rms = std::sqrt(sum_sq / result.points);
     result.normal_sigma = NormalSigma(tag, result, options);
+    result.covariance = CloudCovariance(PlaneCovariance(samples, use, c, ex, ey), result, options);
   } else {
     // Too few points for a plane: the per-axis median is still robust to flying pixels.
     std::vector<double> xs, ys, zs;
@@ -610,6 +654,46 @@ int FusedChoice(const ArucoTag& tag) {
   return cloud - corners > kDecisiveEvidence ? 1 : 0;
 }
 
+namespace {
+
+// Squared Mahalanobis distance (3 degrees of freedom) beyond which the cloud's centre is not fused:
+// the chi-square 99.9 % point.
+constexpr double kCentreGate = 16.27;
+
+// Kalman update of a pose (tvec, rvec, covariance: see PoseCovariance) by a direct measurement of
+// its centre. False, pose untouched, when either covariance is unknown or singular or the centre
+// fails the gate.
+bool FuseCentre(const cv::Vec3d& centre, const PoseCovariance& centre_covariance, cv::Vec3d& tvec, cv::Vec3d& rvec,
+                PoseCovariance& covariance) {
+  cv::Matx33d innovation_covariance;
+  cv::Matx<double, 6, 3> pose_centre;  // covariance of the pose with its centre
+  for (int i = 0; i < 6; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      pose_centre(i, j) = covariance(i, j);
+      if (i < 3) innovation_covariance(i, j) = covariance(i, j) + centre_covariance(i, j);
+    }
+  }
+  cv::Matx33d inverse;
+  if (!cv::checkRange(innovation_covariance) ||
+      cv::invert(innovation_covariance, inverse, cv::DECOMP_CHOLESKY) == 0.0) {
+    return false;
+  }
+  const cv::Vec3d innovation = centre - tvec;
+  if ((innovation.t() * inverse * innovation)(0) > kCentreGate) return false;
+  const cv::Matx<double, 6, 3> gain = pose_centre * inverse;
+  const cv::Vec<double, 6> step = gain * innovation;
+  tvec += cv::Vec3d(step[0], step[1], step[2]);
+  cv::Matx33d rotation, turn;
+  cv::Rodrigues(rvec, rotation);
+  cv::Rodrigues(cv::Vec3d(step[3], step[4], step[5]), turn);
+  cv::Rodrigues(turn * rotation, rvec);
+  covariance -= gain * pose_centre.t();
+  covariance = 0.5 * (covariance + covariance.t());
+  return true;
+}
+
+}  // namespace
+
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
   const bool pnp = tag.pnp.valid && tag.pnp.solutions > 0;
   const bool cloud = tag.cloud.valid;
@@ -661,11 +745,13 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       tag.rvec = tag.pnp.rvec[best];
       tag.tvec = tag.pnp.tvec[best];
       tag.reprojection_error = tag.pnp.rms[best];
-      // The cloud only chose between the two solutions: the pose is PnP's, and so is its
-      // covariance. A fusion that averages cloud and PnP would weigh them by their information
-      // (tag.cloud.covariance and tag.pnp.covariance[best]) here.
       tag.covariance = tag.pnp.covariance[best];
       tag.depth_disagreement = std::abs(cv::norm(tag.tvec) - cv::norm(tag.cloud.centre));
+      // The cloud's centre then updates the chosen solution, weighed by the two covariances
+      // (through PnP's centre-rotation correlation it moves the rotation too); a centre that
+      // disagrees beyond the gate is another surface, a stale cloud or a misregistration, and is
+      // left out.
+      FuseCentre(tag.cloud.centre, tag.cloud.covariance, tag.tvec, tag.rvec, tag.covariance);
       break;
     }
   }

@@ -21,6 +21,18 @@ constexpr double kPlateauBorder = 5.0;
 constexpr double kFitLength = 20.0;
 // Profiles across each fitted stretch: beyond this the line barely improves and time grows.
 constexpr int kProfilesPerEdge = 16;
+// How far (px) a pass may move a corner, and all passes together, before the move is distrusted (the
+// two edge lines nearly parallel, or fitted on something else)... 
+constexpr double kMaxMovePerPass = 3.0;
+constexpr double kMaxDrift = 4.0;
+// ...or this share of the marker's mean side, whichever is more: the contour's polygon cuts a
+// blurred acute corner of an oblique marker short by several pixels (5.4 px on a 100 px marker at
+// 59 degrees), which a fixed cap would then keep.
+constexpr double kMaxMoveShareOfSide = 0.1;
+double MaxMove(double side, double floor) { return std::max(floor, kMaxMoveShareOfSide * side); }
+// Distance (px) kept between a profile and the corner's other edge: its blurred ramp spans about
+// two blur sigmas either side.
+constexpr double kOtherEdgeClearance = 2.5;
 // Markers with a shorter perimeter (px) get a third pass.
 constexpr double kSmallPerimeter = 200.0;
 
@@ -32,7 +44,7 @@ struct Line {
 // nearest the corner. `outward` is the unit normal pointing from the marker's black border to the
 // white surround. Fits a line through them; false when too few points were measurable.
 bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to, const cv::Point2d& outward,
-                       double border, Line& line) {
+                       double border, double corner_angle, Line& line) {
   // Profiles reach across the edge by less than the black border's width, so they do not run into
   // the marker's inner bits, but at least 1.2 px so a corner a pixel off is still caught.
   const double reach = std::clamp(0.8 * border, 1.2, 3.0);
@@ -41,9 +53,13 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const double length = cv::norm(along);
   const cv::Point2d u = along / length;
   // Profiles reach across the edge by less than half the border's width, so they never see the
-  // marker's inner bits; they start far enough from the corner not to see the other edge.
-  // Only the stretch next to the corner: lens distortion bends long edges.
-  const double start = reach + 1.0, stop = std::min(0.5 * length, start + kFitLength);
+  // marker's inner bits; they start far enough from the corner that their inner end stays
+  // kOtherEdgeClearance from the other edge (at an acute corner of an oblique marker that is
+  // several pixels along the edge). Only the stretch next to the corner: lens distortion bends long
+  // edges.
+  const double sine = std::max(std::sin(corner_angle), 0.2);
+  const double start = std::max(reach + 1.0, (kOtherEdgeClearance + reach * std::cos(corner_angle)) / sine);
+  const double stop = std::min(0.5 * length, start + kFitLength);
   if (stop - start < 2.0) return false;
   const int count = std::min(kProfilesPerEdge, static_cast<int>(stop - start) + 1);
   // Finer sampling where the profile is only a few pixels long.
@@ -134,15 +150,18 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
   const auto border_across = [cells](const cv::Point2d& a, const cv::Point2d& b) { return cv::norm(b - a) / cells; };
 
   std::array<cv::Point2f, 4> refined = corners;
+  const double max_move = MaxMove(internal::MeanSide(corners), kMaxMovePerPass);
   int moved = 0;
   for (int i = 0; i < 4; ++i) {
     const cv::Point2d c(corners[i]), prev(corners[(i + 3) % 4]), next(corners[(i + 1) % 4]);
     const double border_next = border_across(prev, c), border_prev = border_across(c, next);
+    const cv::Point2d a = next - c, b = prev - c;
+    const double angle = std::acos(std::clamp(a.dot(b) / (cv::norm(a) * cv::norm(b)), -1.0, 1.0));
     Line to_next, to_prev;
     cv::Point2d p;
-    if (!FitEdgeNearCorner(grey, c, next, outward_of(c, next), border_next, to_next) ||
-        !FitEdgeNearCorner(grey, c, prev, outward_of(prev, c), border_prev, to_prev) || !Intersect(to_next, to_prev, p) ||
-        cv::norm(p - c) > 3.0) {
+    if (!FitEdgeNearCorner(grey, c, next, outward_of(c, next), border_next, angle, to_next) ||
+        !FitEdgeNearCorner(grey, c, prev, outward_of(prev, c), border_prev, angle, to_prev) || !Intersect(to_next, to_prev, p) ||
+        cv::norm(p - c) > max_move) {
       continue;  // keep the detector's corner
     }
     refined[i] = cv::Point2f(p);
@@ -164,8 +183,9 @@ int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corner
   int moved = 0;
   const int passes = 4.0 * internal::MeanSide(corners) < kSmallPerimeter ? 3 : 2;  // small markers start further off
   for (int pass = 0; pass < passes; ++pass) moved = RefineOnce(grey, corners, cells);
+  const double max_drift = MaxMove(internal::MeanSide(start), kMaxDrift);
   for (int i = 0; i < 4; ++i) {
-    if (cv::norm(corners[i] - start[i]) > 4.0) corners[i] = start[i];  // drifted: distrust
+    if (cv::norm(corners[i] - start[i]) > max_drift) corners[i] = start[i];  // drifted: distrust
   }
   return moved;
 }

@@ -221,7 +221,7 @@ TEST(PoseCovariance, GuessedOrientationIsFlagged) {
   EXPECT_TRUE(dense.orientation_measured);
   for (int i = 0; i < 6; ++i) {
     EXPECT_GT(dense.covariance(i, i), 0.0);
-    EXPECT_LT(dense.covariance(i, i), std::pow(i < 3 ? 0.01 : 2.0 * kDeg, 2)) << i;
+    EXPECT_LT(dense.covariance(i, i), std::pow(i < 3 ? 0.01 : 5.0 * kDeg, 2)) << i;
   }
 
   const cv::Point2f centre = FindTagCenter(tag);
@@ -253,36 +253,94 @@ TEST(PoseCovariance, GuessedOrientationIsFlagged) {
   EXPECT_LT(guessed.covariance(3, 3), std::pow(5.0 * kDeg, 2));
   EXPECT_DOUBLE_EQ(guessed.covariance(0, 0), guessed.cloud.covariance(0, 0));
   EXPECT_DOUBLE_EQ(guessed.covariance(0, 3), 0.0);
-  // Fused: the cloud picked a PnP solution, so the pose and its covariance are that solution's.
+  // Fused: the cloud picked a PnP solution and its centre updated it, so the pose is no less
+  // certain than that solution alone.
   EXPECT_EQ(ResolvePose(guessed, PoseSource::kFused), PoseSource::kFused);
   EXPECT_TRUE(guessed.orientation_measured);
-  const int best = guessed.rvec == guessed.pnp.rvec[0] ? 0 : 1;
-  EXPECT_EQ(guessed.covariance, guessed.pnp.covariance[best]);
+  const int best = FusedChoice(guessed);
+  for (int i = 0; i < 6; ++i) EXPECT_LE(guessed.covariance(i, i), guessed.pnp.covariance[best](i, i) * (1.0 + 1e-9));
 }
 
-// The plane fit's covariance against repeated noisy clouds of one view: the centre's scatter over
-// seeds agrees with the reported covariance (mean NEES within [0.5, 2] x 3).
-TEST(PoseCovariance, CloudCentreNees) {
+// The fused pose is PnP's chosen solution updated by the cloud's centre, each weighed by its
+// covariance; a centre beyond the gate (another surface, a stale cloud) leaves PnP's pose alone.
+TEST(PoseCovariance, FusedWeighsTheCloudCentreByBothCovariances) {
+  ArucoTag tag;
+  tag.pnp.valid = true;
+  tag.pnp.solutions = 1;
+  tag.pnp.rvec[0] = cv::Vec3d(CV_PI, 0.0, 0.0);
+  tag.pnp.tvec[0] = cv::Vec3d(0.0, 0.0, 5.0);
+  tag.pnp.rms[0] = 0.1;
+  PoseCovariance pnp = PoseCovariance::zeros();
+  for (int i = 0; i < 6; ++i) pnp(i, i) = 1e-4;
+  pnp(2, 2) = 0.04;           // PnP's range is its weak direction: 0.2 m
+  pnp(2, 4) = pnp(4, 2) = 1e-3;  // and it is correlated with a rotation about y
+  tag.pnp.covariance[0] = pnp;
+  tag.cloud.valid = true;
+  tag.cloud.points = 500;
+  tag.cloud.covariance = PoseCovariance::zeros();
+  for (int i = 0; i < 3; ++i) tag.cloud.covariance(i, i) = 1e-4;
+  tag.cloud.covariance(2, 2) = 0.04;
+  for (int i = 3; i < 6; ++i) tag.cloud.covariance(i, i) = CV_PI * CV_PI;
+
+  tag.cloud.centre = cv::Vec3d(0.0, 0.0, 5.3);
+  ASSERT_EQ(ResolvePose(tag, PoseSource::kFused), PoseSource::kFused);
+  EXPECT_NEAR(tag.tvec[2], 5.15, 1e-9) << "equal weights: half way";
+  EXPECT_NEAR(tag.covariance(2, 2), 0.02, 1e-9);
+  EXPECT_NEAR(tag.tvec[0], 0.0, 1e-12);
+  // The correlation carries the range correction into the rotation: 1e-3 / 0.08 * 0.3 rad about y.
+  EXPECT_NEAR(test::RotationError(tag.rvec, tag.pnp.rvec[0]), 1e-3 / 0.08 * 0.3, 1e-6);
+  EXPECT_LT(tag.covariance(4, 4), pnp(4, 4));
+
+  tag.cloud.centre = cv::Vec3d(0.0, 0.0, 7.0);  // 2 m off: 7 sigma
+  ASSERT_EQ(ResolvePose(tag, PoseSource::kFused), PoseSource::kFused);
+  EXPECT_EQ(tag.tvec, tag.pnp.tvec[0]);
+  EXPECT_EQ(tag.covariance, pnp);
+  EXPECT_NEAR(tag.depth_disagreement, 2.0, 1e-12);
+}
+
+// The cloud's covariance against clouds with a ZED 2's stereo noise (correlated in patches, holes,
+// fattened edges), at 1.5-8 m and 0-50 degrees, the camera's noise model declared: the mean NEES of
+// the centre and of the rotation lies within [0.5, 2] x 3. Correlated noise moves the whole patch,
+// which the plane's residuals alone do not show (their covariance gave a mean NEES in the thousands).
+TEST(PoseCovariance, CloudNeesUnderStereoNoise) {
   const sim::Camera camera = test::RoverCamera();
-  double nees = 0.0;
-  const int draws = 30;
-  for (int seed = 0; seed < draws; ++seed) {
-    const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.2, 0.05, 3.0}, 30.0, 10.0, 0.0);
-    cv::Mat depth;
-    sim::RenderScene(camera, {marker}, sim::RenderOptions(), &depth);
-    sim::CloudOptions cloud_options;
-    cloud_options.depth_noise_sigma = 0.01;
-    cloud_options.nan_fraction = 0.2;
-    cloud_options.seed = 100 + seed;
-    ArucoTag tag;
-    tag.corners = sim::ProjectCorners(camera, marker);
-    ASSERT_TRUE(EstimatePoseFromPointCloud(sim::MakeOrganizedCloud(camera, depth, cloud_options), camera.size, tag));
-    nees += Nees(tag.cloud.covariance, 0, tag.cloud.centre - marker.tvec);
+  const sim::DepthNoise zed = sim::DepthNoise::Zed2();
+  CloudPoseOptions options;
+  options.depth_noise_per_m2 = zed.disparity_sigma / (camera.K(0, 0) * zed.baseline);
+  double nees_t = 0.0, nees_r = 0.0;
+  int draws = 0;
+  cv::RNG rng(5);
+  for (const double range : {1.5, 3.0, 5.0, 8.0}) {
+    for (int k = 0; k < 10; ++k) {
+      const cv::Vec3d position(rng.uniform(-0.3, 0.3) * range, rng.uniform(-0.15, 0.15) * range, range);
+      const sim::Marker marker = sim::FacingCamera(4, 0.15, position, rng.uniform(-50.0, 50.0),
+                                                   rng.uniform(-20.0, 20.0), rng.uniform(-90.0, 90.0));
+      cv::Mat depth;
+      sim::RenderScene(camera, {marker}, sim::RenderOptions(), &depth);
+      sim::CloudOptions cloud_options;
+      cloud_options.stereo = zed;
+      cloud_options.seed = 100 + draws;
+      ArucoTag tag;
+      tag.corners = sim::ProjectCorners(camera, marker);
+      if (!EstimatePoseFromPointCloud(sim::MakeOrganizedCloud(camera, depth, cloud_options), camera.size, tag, options) ||
+          !tag.cloud.has_rotation) {
+        continue;
+      }
+      nees_t += Nees(tag.cloud.covariance, 0, tag.cloud.centre - marker.tvec);
+      cv::Vec3d cloud_rvec;
+      cv::Rodrigues(tag.cloud.rotation, cloud_rvec);
+      nees_r += Nees(tag.cloud.covariance, 3, RotationResidual(cloud_rvec, marker.rvec));
+      ++draws;
+    }
   }
-  nees /= draws;
-  std::printf("cloud centre: mean NEES %.2f over %d clouds\n", nees, draws);
-  EXPECT_GE(nees, 1.5);
-  EXPECT_LE(nees, 6.0);
+  ASSERT_GE(draws, 30);
+  nees_t /= draws;
+  nees_r /= draws;
+  std::printf("cloud under ZED 2 noise: mean NEES centre %.2f, rotation %.2f over %d clouds\n", nees_t, nees_r, draws);
+  EXPECT_GE(nees_t, 1.5);
+  EXPECT_LE(nees_t, 6.0);
+  EXPECT_GE(nees_r, 1.5);
+  EXPECT_LE(nees_r, 6.0);
 }
 
 }  // namespace
