@@ -7,7 +7,8 @@ add_library(arucotag_nodelet
   src/nodelet/conversions.cpp
   src/nodelet/detector_nodelet.cpp
   src/nodelet/image_input.cpp
-  src/nodelet/parameters.cpp)
+  src/nodelet/parameters.cpp
+  src/nodelet/tracks.cpp)
 target_include_directories(arucotag_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
 target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
 target_link_libraries(arucotag_nodelet arucotag_core ${catkin_LIBRARIES})
