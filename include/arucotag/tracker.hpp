@@ -30,16 +30,18 @@ struct TrackerConfig {
   /// frame's drift, e.g. odometry under the camera) may wander. m/sqrt(s) and rad/sqrt(s).
   double position_noise = 0.005;
   double rotation_noise = 0.01;
-  /// A detection farther than this (m) from every track of its id starts a new track: the faces of a
-  /// post share an id and are told apart by where they are.
+  /// A detection farther than this (m) from every track of its id, or turned from each by more than
+  /// association_angle (rad; either planar solution counts), starts a new track: the faces of a URC
+  /// post share an id, stand 0.1 m apart and face 120 degrees apart.
   double association_distance = 0.3;
+  double association_angle = 0.785;
   /// true: the measurements are in a fixed frame and each track is a Kalman filter of its marker's
   /// pose, shared by every camera. false: the measurements are in their camera's own (moving) frame,
   /// so tracks are kept per camera, carry the last detection's pose and covariance, and no gate.
   bool filter = true;
 
   /// Throws arucotag::Error naming the first value out of range (hits < 1, window, T, gate, distance
-  /// not > 0, misses < 1, noise < 0 or any value not finite).
+  /// not > 0, angle not in (0, pi], misses < 1, noise < 0 or any value not finite).
   void Validate() const;
 };
 

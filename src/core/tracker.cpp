@@ -37,6 +37,12 @@ PoseCovariance Rotate(const PoseCovariance& c, const cv::Matx33d& r) {
 
 Matx66 Symmetric(const Matx66& m) { return (m + m.t()) * 0.5; }
 
+// rad between two rotations.
+double Angle(const cv::Matx33d& a, const cv::Matx33d& b) {
+  const double c = (cv::trace(a * b.t()) - 1.0) / 2.0;
+  return std::acos(std::max(-1.0, std::min(1.0, c)));
+}
+
 // The measurement minus the track: position difference and the small rotation taking the track's
 // orientation to the measured one, both in the fixed frame. With left perturbations on both, the
 // measurement matrix is the identity.
@@ -58,6 +64,8 @@ void TrackerConfig::Validate() const {
   Require(std::isfinite(position_noise) && position_noise >= 0.0, "position_noise must be >= 0 m/sqrt(s)");
   Require(std::isfinite(rotation_noise) && rotation_noise >= 0.0, "rotation_noise must be >= 0 rad/sqrt(s)");
   Require(std::isfinite(association_distance) && association_distance > 0.0, "association_distance must be > 0 m");
+  Require(std::isfinite(association_angle) && association_angle > 0.0 && association_angle <= M_PI,
+          "association_angle must be in (0, pi] rad");
 }
 
 TrackMeasurement MeasurementInFrame(const ArucoTag& tag, const cv::Matx33d& rotation, const cv::Vec3d& translation) {
@@ -180,8 +188,11 @@ void TagTracker::Update(const std::string& camera, double stamp, const std::vect
   for (size_t i = 0; i < measurements.size(); ++i) {
     for (size_t j = 0; j < existing; ++j) {
       if (!mine[j] || tracks_[j].id != measurements[i].id) continue;
-      const double d = cv::norm(measurements[i].position - tracks_[j].position);
-      if (d <= config_.association_distance) pairs.emplace_back(d, i, j);
+      const TrackMeasurement& m = measurements[i];
+      const double d = cv::norm(m.position - tracks_[j].position);
+      const double angle = std::min(Angle(m.rotation, tracks_[j].rotation),
+                                    m.has_alternative ? Angle(m.alternative_rotation, tracks_[j].rotation) : M_PI);
+      if (d <= config_.association_distance && angle <= config_.association_angle) pairs.emplace_back(d, i, j);
     }
   }
   std::sort(pairs.begin(), pairs.end());

@@ -78,6 +78,7 @@ const Field<TrackerConfig, double> kTrackerDoubles[] = {
     {"track_position_noise", &TrackerConfig::position_noise, &Reconfigure::track_position_noise},
     {"track_rotation_noise", &TrackerConfig::rotation_noise, &Reconfigure::track_rotation_noise},
     {"track_association_distance", &TrackerConfig::association_distance, &Reconfigure::track_association_distance},
+    {"track_association_angle", &TrackerConfig::association_angle, &Reconfigure::track_association_angle},
 };
 
 template <class Visit>

@@ -371,6 +371,20 @@ TEST(Tracker, SameIdTwiceInOneFrameIsTwoTracks) {
   EXPECT_NEAR(tracker.Tracks()[1].position[1], -0.25, 1e-9);
 }
 
+// Two faces of a URC post (one id, 0.1 m apart, facing 120 degrees apart) seen one at a time, as a
+// rover circling the post sees them: two tracks, never one pulled between them.
+TEST(Tracker, PostFacesSeenOneAtATimeAreTwoTracks) {
+  TagTracker tracker;
+  const cv::Vec3d a_rotation(0, 0, 0), c_rotation(0, 120 * kDeg, 0);
+  for (int k = 0; k < 5; ++k) tracker.Update("c", k * 0.1, {Measured(1, {5, 0.05, 0}, a_rotation)});
+  for (int k = 5; k < 10; ++k) tracker.Update("c", k * 0.1, {Measured(1, {5, -0.05, 0}, c_rotation)});
+  ASSERT_EQ(tracker.Tracks().size(), 2u);
+  EXPECT_EQ(tracker.Tracks()[0].hits, 5);
+  EXPECT_EQ(tracker.Tracks()[0].outliers, 0);
+  EXPECT_EQ(tracker.Tracks()[1].hits, 5);
+  EXPECT_NEAR(tracker.Tracks()[1].position[1], -0.05, 1e-9);
+}
+
 TEST(Tracker, ValidationNeedsItsHitsWithinTheWindow) {
   TrackerConfig config;
   config.validation_hits = 3;
