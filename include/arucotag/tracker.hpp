@@ -32,7 +32,9 @@ struct TrackerConfig {
   double rotation_noise = 0.01;
   /// A detection farther than this (m) from every track of its id, or turned from each by more than
   /// association_angle (rad; either planar solution counts), starts a new track: the faces of a URC
-  /// post share an id, stand 0.1 m apart and face 120 degrees apart.
+  /// post share an id, stand 0.1 m apart and face 120 degrees apart. Without `filter` the poses are
+  /// in a moving camera's frame, where a marker's position jumps with every turn of the camera: there
+  /// the position test is on its direction instead (within association_angle of the track's).
   double association_distance = 0.3;
   double association_angle = 0.785;
   /// true: the measurements are in a fixed frame and each track is a Kalman filter of its marker's

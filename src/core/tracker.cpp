@@ -43,6 +43,12 @@ double Angle(const cv::Matx33d& a, const cv::Matx33d& b) {
   return std::acos(std::max(-1.0, std::min(1.0, c)));
 }
 
+// rad between the directions of two points seen from the origin.
+double Bearing(const cv::Vec3d& a, const cv::Vec3d& b) {
+  const double norms = cv::norm(a) * cv::norm(b);
+  return norms > 0.0 ? std::acos(std::max(-1.0, std::min(1.0, a.dot(b) / norms))) : 0.0;
+}
+
 // The measurement minus the track: position difference and the small rotation taking the track's
 // orientation to the measured one, both in the fixed frame. With left perturbations on both, the
 // measurement matrix is the identity.
@@ -192,7 +198,10 @@ void TagTracker::Update(const std::string& camera, double stamp, const std::vect
       const double d = cv::norm(m.position - tracks_[j].position);
       const double angle = std::min(Angle(m.rotation, tracks_[j].rotation),
                                     m.has_alternative ? Angle(m.alternative_rotation, tracks_[j].rotation) : M_PI);
-      if (d <= config_.association_distance && angle <= config_.association_angle) pairs.emplace_back(d, i, j);
+      // In a moving camera's frame a marker moves with the camera: only its direction stays put enough.
+      const bool near = config_.filter ? d <= config_.association_distance
+                                       : Bearing(m.position, tracks_[j].position) <= config_.association_angle;
+      if (near && angle <= config_.association_angle) pairs.emplace_back(d, i, j);
     }
   }
   std::sort(pairs.begin(), pairs.end());

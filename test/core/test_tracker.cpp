@@ -385,6 +385,23 @@ TEST(Tracker, PostFacesSeenOneAtATimeAreTwoTracks) {
   EXPECT_NEAR(tracker.Tracks()[1].position[1], -0.05, 1e-9);
 }
 
+// Without a fixed frame the poses are the camera's: a turning camera moves a marker 10 m away by
+// 0.5 m a frame (3 deg), which must not break its track; a marker of the same id in another
+// direction is another track.
+TEST(Tracker, WithoutFilterTracksFollowTheDirectionInATurningCamera) {
+  TrackerConfig config;
+  config.filter = false;
+  TagTracker tracker(config);
+  for (int k = 0; k < 10; ++k) {
+    const double a = 3.0 * kDeg * k;
+    tracker.Update("c", k / kRate, {Measured(1, {10 * std::sin(a), 0, 10 * std::cos(a)}, {0, a, 0}),
+                                     Measured(1, {10 * std::sin(a - 1.0), 0, 10 * std::cos(a - 1.0)}, {0, a, 0})});
+  }
+  ASSERT_EQ(tracker.Tracks().size(), 2u);
+  EXPECT_EQ(tracker.Tracks()[0].hits, 10);
+  EXPECT_EQ(tracker.Tracks()[1].hits, 10);
+}
+
 TEST(Tracker, ValidationNeedsItsHitsWithinTheWindow) {
   TrackerConfig config;
   config.validation_hits = 3;
