@@ -1,6 +1,7 @@
 // TagTracker on rendered sequences with known truth: a marker dropping out, a one-frame false
 // positive, a camera at rover speed, two cameras on one marker; and the filter's gate, time jumps and
 // configuration on hand-made measurements.
+#include <algorithm>
 #include <cstdio>
 #include <set>
 
@@ -177,8 +178,14 @@ TEST(Tracker, MarkerDroppingOutForTenFramesKeepsItsTrackOrIsDroppedAsConfigured)
   EXPECT_EQ(by_time.track_ids[26], 1u);
   EXPECT_EQ(by_time.track_ids[27], 0u);
   EXPECT_EQ(by_time.track_ids[30], 2u);
-  std::printf("dropout: validation latency 3 frames; kept through 10 missed frames with M=15, T=2 s; dropped at "
-              "the 5th miss with M=5 and at the 8th (0.27 s) with T=0.25 s; re-validated 3 frames after it came back\n");
+  const auto first_validated = [](const TrackRun& run, int from) {
+    return static_cast<int>(std::find(run.validated.begin() + from, run.validated.end(), true) - run.validated.begin());
+  };
+  std::printf("dropout: validation latency %d frames; one track through 10 missed frames with M=15, T=2 s (%zu "
+              "created); dropped with M=5 (%zu dropped) and with T=0.25 s; after it came back, validated again "
+              "in %d frames\n",
+              first_validated(kept, 0) + 1, kept.counts.created, by_misses.counts.dropped,
+              first_validated(by_misses, 30) - 30 + 1);
 }
 
 TEST(Tracker, OneFrameFalsePositiveIsNeverValidated) {
