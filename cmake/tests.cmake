@@ -15,7 +15,8 @@ catkin_add_gtest(test_core
   test/core/test_small_markers.cpp
   test/core/test_refine_pattern.cpp
   test/core/test_no_ros.cpp
-  test/core/test_synthetic.cpp)
+  test/core/test_synthetic.cpp
+  test/core/test_tracker.cpp)
 target_link_libraries(test_core arucotag_sim arucotag_core ${GTEST_MAIN_LIBRARIES})
 target_compile_definitions(test_core PRIVATE
   ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"

@@ -3,8 +3,10 @@
 # make_sample_bag on first use; recorded like a field bag: jpeg images on <image>/compressed,
 # camera_info on its own 2 Hz timer, a half-resolution cloud for every third image) through the
 # detector nodelet with launch/replay.launch (compressed transport), headless, and scores every
-# marker against the recording's truth. Prints the table, writes a few overlay images to
-# $ARUCOTAG_DEMO_OUT (default ./output/demo) and exits non-zero when a marker misses the thresholds (recall >= 90 %, median distance error <= 0.5 % of range, median yaw error <= 1 deg).
+# marker against the recording's truth. Prints the table, then the detector's tracks (`tracks` topic:
+# hits, misses, frames to validation, pose), writes a few overlay images to $ARUCOTAG_DEMO_OUT (default
+# ./output/demo) and exits non-zero when a marker misses the thresholds (recall >= 90 %, median distance
+# error <= 0.5 % of range, median yaw error <= 1 deg) or a track of an id not in the recording is validated.
 #
 # The detector runs with the rover's preset, config/urc.yaml; ARUCOTAG_DEMO_PARAMS overrides
 # detector parameters on top of it (a YAML mapping, e.g. "{corner_refinement: subpix}").

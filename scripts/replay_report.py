@@ -6,8 +6,9 @@ sample that make_sample_bag writes does. Its images are counted on --image-topic
 jpeg, sensor_msgs/CompressedImage on <image>/compressed, which launch/replay.launch feeds the
 nodelet by default; pass --launch-arg image_transport:=raw and the raw topic for a bag of raw
 images). Prints one row per marker -- frames seen / frames visible, distance, yaw and rotation
-errors, pose source -- saves a few overlay images, and exits non-zero when a marker misses the
-thresholds. Also imported by the replay rostests (capture and scoring).
+errors, pose source -- then one row per track the detector kept (its `tracks` topic), saves a few
+overlay images, and exits non-zero when a marker misses the thresholds or a track of an id that is
+not in the recording was validated. Also imported by the replay rostests (capture and scoring).
 
     scripts/replay_report.py --bag build/sample/sample.bag --own-master --out output/demo
 """
@@ -28,7 +29,7 @@ import rosbag
 import rosgraph
 import rospy
 
-from arucotag.msg import ArucoTagArray, ArucoTagTruth
+from arucotag.msg import ArucoTagArray, ArucoTagTruth, TagTracks
 from sensor_msgs.msg import Image
 
 SOURCES = {0: "none", 1: "pnp", 2: "point_cloud", 3: "fused"}
@@ -62,6 +63,8 @@ class Replay:
         self.truth = {}       # stamp -> ArucoTagTruth
         self.tags = {}        # stamp -> ArucoTagArray
         self.raw_tags = []    # serialized ArucoTagArray, in arrival order
+        self.tracks = []      # TagTracks, in arrival order
+        self.raw_tracks = []  # the same serialized
         self.overlays = {}    # stamp -> Image, the few kept
         self.seconds = 0.0    # wall time of the replay
 
@@ -135,7 +138,7 @@ def bag_images(path, topic):
 class Recorder:
     """Subscribes to truth, tags and (optionally) the overlay; keeps the best overlay per time slot."""
 
-    def __init__(self, truth_topic, tags_topic, overlay_topic=None, overlay_slots=0):
+    def __init__(self, truth_topic, tags_topic, overlay_topic=None, overlay_slots=0, tracks_topic=None):
         self.replay = None
         self.slots = overlay_slots
         self.span = (0.0, 1.0)
@@ -143,6 +146,8 @@ class Recorder:
         # Tags first: by the time the truth subscriber lets `--wait-for-subscribers` start the bag,
         # the tags connection is up too.
         self.subs = [rospy.Subscriber(tags_topic, rospy.AnyMsg, self.on_tags, queue_size=1000)]
+        if tracks_topic:
+            self.subs.append(rospy.Subscriber(tracks_topic, rospy.AnyMsg, self.on_tracks, queue_size=1000))
         if overlay_topic and overlay_slots > 0:
             self.subs.append(rospy.Subscriber(overlay_topic, Image, self.on_overlay, queue_size=30,
                                               buff_size=2 ** 26))
@@ -158,6 +163,12 @@ class Recorder:
         msg = ArucoTagArray().deserialize(raw._buff)
         self.replay.raw_tags.append(bytes(raw._buff))
         self.replay.tags[msg.header.stamp] = msg
+
+    def on_tracks(self, raw):
+        if self.replay is None:
+            return
+        self.replay.raw_tracks.append(bytes(raw._buff))
+        self.replay.tracks.append(TagTracks().deserialize(raw._buff))
 
     def on_overlay(self, msg):
         replay = self.replay
@@ -357,6 +368,68 @@ def format_table(replay, markers, false_positives, missing, thresholds):
     return "\n".join(lines)
 
 
+class TrackSummary:
+    """One track over a replay: its last state and when it was validated."""
+
+    def __init__(self, track, index):
+        self.first = index       # index of the first tracks message holding it
+        self.validated_at = None  # index of the first one where it was validated
+        self.last = track
+        self.last_index = index
+
+    def frames_to_validate(self):
+        return None if self.validated_at is None else self.validated_at - self.first + 1
+
+
+def summarize_tracks(replay):
+    """{track_id: TrackSummary} over every tracks message of the replay, in arrival order."""
+    tracks = {}
+    for index, msg in enumerate(replay.tracks):
+        for track in msg.tracks:
+            summary = tracks.setdefault(track.track_id, TrackSummary(track, index))
+            summary.last, summary.last_index = track, index
+            if track.validated and summary.validated_at is None:
+                summary.validated_at = index
+    return tracks
+
+
+def false_tracks(replay, tracks):
+    """Validated tracks whose id no truth message of the replay holds."""
+    ids = {t.id for truth in replay.truth.values() for t in truth.tags}
+    return [s for s in tracks.values() if s.validated_at is not None and s.last.id not in ids]
+
+
+def format_track_table(replay, tracks):
+    frame = replay.tracks[-1].header.frame_id if replay.tracks else "-"
+    header = ("%5s %3s %-9s %5s %6s %8s %6s %7s %-9s %-26s %-11s %s"
+              % ("track", "id", "validated", "hits", "misses", "outliers", "age s", "to val", "last seen",
+                 "position (m, %s)" % frame, "sigma xyz mm", "pose"))
+    lines = [header, "-" * len(header)]
+    start = min(replay.truth).to_sec() if replay.truth else 0.0
+    for track_id in sorted(tracks):
+        s = tracks[track_id]
+        t = s.last
+        p = t.pose.pose.position
+        sigma = "/".join("%.0f" % (1e3 * math.sqrt(max(0.0, t.pose.covariance[7 * i]))) for i in range(3))
+        validated = "yes" if t.validated else ("was" if s.validated_at is not None else "no")
+        gone = "" if s.last_index == len(replay.tracks) - 1 else " (dropped)"
+        lines.append("%5d %3d %-9s %5d %6d %8d %6.2f %7s %8.2fs %-26s %-11s %s%s"
+                     % (track_id, t.id, validated, t.hits, t.misses, t.outliers, t.age,
+                        "-" if s.frames_to_validate() is None else "%d fr" % s.frames_to_validate(),
+                        t.last_seen.to_sec() - start, "%7.3f %7.3f %7.3f" % (p.x, p.y, p.z), sigma,
+                        "filtered" if t.filtered else "last detection", gone))
+    validated = [s for s in tracks.values() if s.validated_at is not None]
+    latencies = sorted(s.frames_to_validate() for s in validated)
+    lines.append("")
+    lines.append("tracks: %d, validated %d (after %s frames), false tracks (validated, id not in the recording) %d; "
+                 "to val = frames from the first detection to validation; without output_frame the poses are the "
+                 "last detection's, in the camera frame"
+                 % (len(tracks), len(validated),
+                    "-" if not latencies else "%d-%d" % (latencies[0], latencies[-1]),
+                    len(false_tracks(replay, tracks))))
+    return "\n".join(lines)
+
+
 def write_png(path, image):
     """A bgr8/rgb8/mono8 sensor_msgs/Image as a PNG, without OpenCV or numpy."""
     w, h, step = image.width, image.height, image.step
@@ -393,6 +466,7 @@ def main():
     parser.add_argument("--launch-arg", action="append", default=[], metavar="NAME:=VALUE",
                         help="extra replay.launch argument (repeatable)")
     parser.add_argument("--tags-topic", default="/zed/tags")
+    parser.add_argument("--tracks-topic", default="/zed/tracks")
     parser.add_argument("--truth-topic", default="/truth/tags")
     parser.add_argument("--overlay-topic", default="/zed/overlay")
     parser.add_argument("--image-topic", default=IMAGE_TOPIC,
@@ -423,7 +497,7 @@ def main():
                                    % os.environ.get("ROS_MASTER_URI"))
             rospy.init_node("replay_report", anonymous=True, disable_signals=True)
             recorder = Recorder(args.truth_topic, args.tags_topic, args.overlay_topic if args.out else None,
-                                args.overlays)
+                                args.overlays, args.tracks_topic)
             replay = recorder.run(args.bag, args.rate, args.launch_arg, args.image_topic, args.timeout, log)
         finally:
             if not rospy.is_shutdown():
@@ -432,6 +506,9 @@ def main():
 
     markers, false_positives, missing = score(replay, thresholds)
     print(format_table(replay, markers, false_positives, missing, thresholds))
+    tracks = summarize_tracks(replay)
+    print()
+    print(format_track_table(replay, tracks))
     if args.out:
         os.makedirs(args.out, exist_ok=True)
         start = min(replay.truth) if replay.truth else None
@@ -449,6 +526,13 @@ def main():
         return 1
     if failed:
         print("FAIL: %d of %d judged markers below the thresholds" % (len(failed), len(judged)))
+        return 1
+    if not replay.tracks:
+        print("FAIL: no tracks received on %s" % args.tracks_topic)
+        return 1
+    if false_tracks(replay, tracks):
+        print("FAIL: validated tracks of ids not in the recording: %s"
+              % ", ".join("%d (id %d)" % (s.last.track_id, s.last.id) for s in false_tracks(replay, tracks)))
         return 1
     print("PASS: %d markers judged; recall >= %.0f%%, median distance error <= %.2f%% of range, median yaw error "
           "<= %.2f deg, median rotation error <= %.1f deg to 5 m and <= %.1f deg to 15 m, flipped poses <= %d"

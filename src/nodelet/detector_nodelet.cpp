@@ -1,5 +1,5 @@
 // The detector nodelet: subscribes image (+ camera_info, + points), runs the arucotag core, publishes
-// tags, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
+// tags, tracks, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
 // parameters.cpp; this file is wiring. Every callback runs on the nodelet's single-threaded queue,
 // except the connect callbacks (publisher threads), which only touch the subscriptions.
 //
@@ -12,6 +12,7 @@
 #include <arucotag/ros/conversions.hpp>  // first: it renames the generated ArucoTag message
 #include <arucotag/ros/image_input.hpp>
 #include <arucotag/ros/parameters.hpp>
+#include <arucotag/ros/tracks.hpp>
 
 #include <algorithm>
 #include <atomic>
@@ -105,8 +106,11 @@ class DetectorNodelet : public nodelet::Nodelet {
   PointCloud2ConstPtr NearestCloud(const ros::Time& stamp) const;
   cv::Mat CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
   void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const cv::Mat& cloud, const cv::Size& size);
-  void Publish(const ImageConstPtr& image, const ArucoTagArray& array, const std::vector<ArucoTag>& tags);
-  void PublishTf(const ArucoTagArray& array);
+  TagTracks UpdateTracks(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
+                         const std::optional<geometry_msgs::TransformStamped>& to_output);
+  void Publish(const ImageConstPtr& image, const ArucoTagArray& array, const std::vector<ArucoTag>& tags,
+               const TagTracks& tracks);
+  void PublishTf(const ArucoTagArray& array, const TagTracks& tracks);
   std::string ChildFramePrefix(const std::string& camera_frame) const;
 
   void OnReconfigure(ArucotagDetectorConfig& config, uint32_t level);
@@ -118,6 +122,8 @@ class DetectorNodelet : public nodelet::Nodelet {
 
   NodeletParameters params_;
   std::unique_ptr<Detector> detector_;
+  std::unique_ptr<TagTracker> tracker_;
+  std::map<uint32_t, ros::Time> last_seen_;  // per track id: the exact stamp of its last hit
   std::string inert_reason_;  // set when the parameters were rejected: nothing is subscribed
 
   ros::NodeHandle nh_, pnh_;
@@ -141,7 +147,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::map<const Image*, Clock::time_point> arrived_;          // arrival of images not yet processed
 
   // Outputs.
-  ros::Publisher tags_pub_, markers_pub_;
+  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_;
   image_transport::Publisher overlay_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
@@ -207,6 +213,7 @@ void DetectorNodelet::onInit() {
 void DetectorNodelet::Start() {
   params_ = ReadParameters(pnh_);
   detector_ = std::make_unique<Detector>(params_.detector);
+  tracker_ = std::make_unique<TagTracker>(params_.tracker);
   for (const auto& name : UnknownParameters(pnh_)) {
     NODELET_WARN("unknown parameter ~%s is ignored (typo?); config/detector.yaml lists the valid ones", name.c_str());
   }
@@ -227,7 +234,9 @@ void DetectorNodelet::Start() {
 
   reconfigure_ = std::make_unique<dynamic_reconfigure::Server<ArucotagDetectorConfig>>(reconfigure_mutex_, pnh_);
   // Show the values in use (the server would otherwise clamp to the cfg ranges without a word).
-  reconfigure_->updateConfig(ToReconfigure(params_.detector, params_.preprocess));
+  ArucotagDetectorConfig in_use = ToReconfigure(params_.detector, params_.preprocess);
+  TrackToReconfigure(params_.tracker, params_.tf_from_validated_tracks, in_use);
+  reconfigure_->updateConfig(in_use);
   reconfigure_->setCallback([this](ArucotagDetectorConfig& config, uint32_t level) { OnReconfigure(config, level); });
 
   it_ = std::make_unique<image_transport::ImageTransport>(nh_);
@@ -237,6 +246,8 @@ void DetectorNodelet::Start() {
   const auto connect_image = [this](const image_transport::SingleSubscriberPublisher&) { ConnectCallback(); };
   tags_pub_ = nh_.advertise<ArucoTagArray>("tags", 10, connect, connect);
   markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 1, connect, connect);
+  tracks_pub_ = nh_.advertise<TagTracks>("tracks", 10, connect, connect);
+  track_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("track_markers", 1, connect, connect);
   overlay_pub_ = it_->advertise("overlay", 1, connect_image, connect_image);
   if (params_.publish_tf) Subscribe();  // TF has no subscriber count: it always counts as listening
   const char* transport = params_.transport == Transport::kRaw          ? "raw"
@@ -252,7 +263,8 @@ void DetectorNodelet::ConnectCallback() {
   std::lock_guard<std::mutex> lock(connect_mutex_);
   if (shutting_down_ || !inert_reason_.empty()) return;
   const bool listening = params_.publish_tf || tags_pub_.getNumSubscribers() > 0 ||
-                         markers_pub_.getNumSubscribers() > 0 || overlay_pub_.getNumSubscribers() > 0;
+                         markers_pub_.getNumSubscribers() > 0 || overlay_pub_.getNumSubscribers() > 0 ||
+                         tracks_pub_.getNumSubscribers() > 0 || track_markers_pub_.getNumSubscribers() > 0;
   if (listening && !subscribed_) {
     Subscribe();
   } else if (!listening && subscribed_) {
@@ -456,7 +468,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
                                 "depth, or the cloud is all NaN): poses from PnP alone");
   }
   const ArucoTagArray array = ToMessage(tags, header, to_output ? &*to_output : nullptr);
-  Publish(image, array, tags);
+  Publish(image, array, tags, UpdateTracks(tags, header, to_output));
 
   ++counts_.processed;
   const auto end = Clock::now();
@@ -546,11 +558,36 @@ void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& c
   ResolvePose(tag, params_.pose_source);
 }
 
+// Without ~output_frame the tracker gets the camera's own poses (TrackerConfig::filter is off).
+TagTracks DetectorNodelet::UpdateTracks(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
+                                        const std::optional<geometry_msgs::TransformStamped>& to_output) {
+  cv::Matx33d rotation = cv::Matx33d::eye();
+  cv::Vec3d translation(0.0, 0.0, 0.0);
+  if (to_output) ToRigid(to_output->transform, rotation, translation);
+  tracker_->Update(header.frame_id, header.stamp.toSec(), MeasurementsInFrame(tags, rotation, translation));
+  std_msgs::Header frame = header;
+  if (!params_.output_frame.empty()) frame.frame_id = params_.output_frame;
+  TagTracks tracks = ToMessage(tracker_->Tracks(), frame, params_.tracker.filter);
+  // The core keeps stamps as double seconds (a fraction of a microsecond off today's stamps): give
+  // each track its image's exact stamp back.
+  std::map<uint32_t, ros::Time> last_seen;
+  for (size_t i = 0; i < tracks.tracks.size(); ++i) {
+    TagTrack& track = tracks.tracks[i];
+    const auto known = last_seen_.find(track.track_id);
+    const bool hit_now = tracker_->Tracks()[i].last_seen == header.stamp.toSec() || known == last_seen_.end();
+    track.last_seen = last_seen[track.track_id] = hit_now ? header.stamp : known->second;
+  }
+  last_seen_.swap(last_seen);
+  return tracks;
+}
+
 void DetectorNodelet::Publish(const ImageConstPtr& image, const ArucoTagArray& array,
-                              const std::vector<ArucoTag>& tags) {
+                              const std::vector<ArucoTag>& tags, const TagTracks& tracks) {
   tags_pub_.publish(boost::make_shared<ArucoTagArray>(array));
-  if (params_.publish_tf) PublishTf(array);
+  tracks_pub_.publish(boost::make_shared<TagTracks>(tracks));
+  if (params_.publish_tf) PublishTf(array, tracks);
   if (markers_pub_.getNumSubscribers() > 0) markers_pub_.publish(ToMarkers(array));
+  if (track_markers_pub_.getNumSubscribers() > 0) track_markers_pub_.publish(ToTrackMarkers(tracks));
   if (overlay_pub_.getNumSubscribers() > 0) {
     try {
       cv::Mat overlay = OverlayBgr8(image);
@@ -569,14 +606,26 @@ std::string DetectorNodelet::ChildFramePrefix(const std::string& camera_frame) c
   return begin == std::string::npos ? std::string() : camera_frame.substr(begin) + "/aruco_";
 }
 
-void DetectorNodelet::PublishTf(const ArucoTagArray& array) {
+void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tracks) {
   if (array.header.frame_id.empty()) return;  // Process reported it
-  // A post shows one id on several faces; TF gets only the best-measured face per id.
+  // A post shows one id on several faces; TF gets only the best-measured face per id, or with
+  // ~tf_from_validated_tracks the most-seen validated track per id (its filtered pose).
   std::map<int, const ArucoTagMsg*> best;
-  for (const auto& tag : array.tags) {
-    if (tag.pose_source == ArucoTagMsg::NONE) continue;
-    const ArucoTagMsg*& chosen = best[tag.id];
-    if (!chosen || BetterMeasured(tag, *chosen)) chosen = &tag;
+  std::map<int, ArucoTagMsg> validated;  // id -> the pose of its most-seen validated track
+  if (params_.tf_from_validated_tracks) {
+    std::map<int, uint32_t> hits;
+    for (const auto& track : tracks.tracks) {
+      if (!track.validated || track.hits <= hits[track.id]) continue;
+      hits[track.id] = track.hits;
+      validated[track.id].pose = track.pose.pose;
+    }
+    for (const auto& [id, pose] : validated) best[id] = &pose;
+  } else {
+    for (const auto& tag : array.tags) {
+      if (tag.pose_source == ArucoTagMsg::NONE) continue;
+      const ArucoTagMsg*& chosen = best[tag.id];
+      if (!chosen || BetterMeasured(tag, *chosen)) chosen = &tag;
+    }
   }
   std_msgs::Header header = array.header;
   if (header.stamp.isZero()) header.stamp = ros::Time::now();
@@ -600,10 +649,16 @@ void DetectorNodelet::OnReconfigure(ArucotagDetectorConfig& config, uint32_t) {
   PreprocessOptions preprocess = params_.preprocess;
   try {
     ApplyReconfigure(config, detector, preprocess);
+    TrackerConfig tracker = params_.tracker;
+    bool tf_from_validated_tracks = params_.tf_from_validated_tracks;
+    ApplyTrackReconfigure(config, tracker, tf_from_validated_tracks);
     auto fresh = std::make_unique<Detector>(detector);  // validates everything before anything changes
     detector_ = std::move(fresh);
+    tracker_->SetConfig(tracker);
     params_.detector = detector;
     params_.preprocess = preprocess;
+    params_.tracker = tracker;
+    params_.tf_from_validated_tracks = tf_from_validated_tracks;
   } catch (const std::exception& e) {
     // Not throttled: each request is someone's deliberate action and deserves its answer.
     ++counts_.reconfigure_rejected;
@@ -611,6 +666,7 @@ void DetectorNodelet::OnReconfigure(ArucotagDetectorConfig& config, uint32_t) {
     last_error_time_ = Clock::now();
     NODELET_ERROR("%s", last_error_.c_str());
     config = ToReconfigure(params_.detector, params_.preprocess);  // report what is really in use
+    TrackToReconfigure(params_.tracker, params_.tf_from_validated_tracks, config);
   }
 }
 

@@ -66,12 +66,33 @@ const Field<PreprocessOptions, bool> kPreprocessBools[] = {
 
 #undef ARUCOTAG_FIELD
 
+// The tracker's values: ROS names carry a track_ prefix the core's fields do not.
+const Field<TrackerConfig, int> kTrackerInts[] = {
+    {"track_validation_hits", &TrackerConfig::validation_hits, &Reconfigure::track_validation_hits},
+    {"track_max_misses", &TrackerConfig::max_misses, &Reconfigure::track_max_misses},
+};
+const Field<TrackerConfig, double> kTrackerDoubles[] = {
+    {"track_validation_window", &TrackerConfig::validation_window, &Reconfigure::track_validation_window},
+    {"track_max_unseen", &TrackerConfig::max_unseen, &Reconfigure::track_max_unseen},
+    {"track_gate", &TrackerConfig::gate, &Reconfigure::track_gate},
+    {"track_position_noise", &TrackerConfig::position_noise, &Reconfigure::track_position_noise},
+    {"track_rotation_noise", &TrackerConfig::rotation_noise, &Reconfigure::track_rotation_noise},
+    {"track_association_distance", &TrackerConfig::association_distance, &Reconfigure::track_association_distance},
+    {"track_association_angle", &TrackerConfig::association_angle, &Reconfigure::track_association_angle},
+};
+
+template <class Visit>
+void ForEachTrackField(Visit&& visit) {
+  for (const auto& field : kTrackerInts) visit(field);
+  for (const auto& field : kTrackerDoubles) visit(field);
+}
+
 // Private parameters read outside the tables above.
 const char* const kOtherNames[] = {
     "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
     "image_transport", "use_point_cloud", "queue_size", "pose_source", "publish_tf", "output_frame",
     "frame_prefix", "rectified", "camera_info_max_age", "camera_info_wait", "cloud_max_dt", "cloud_cache_size",
-    "depth_noise",
+    "depth_noise", "tf_from_validated_tracks",
     "diagnostic_period",  // diagnostic_updater's own
 };
 
@@ -239,6 +260,15 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
           "must be >= 0 (sigma_z / z^2, 1/m)");
   Get(pnh, "cloud_cache_size", p.cloud_cache_size);
   Require(p.cloud_cache_size >= 1, "cloud_cache_size", "must be >= 1");
+
+  ForEachTrackField([&](const auto& field) { Get(pnh, field.name, p.tracker.*field.core); });
+  try {
+    p.tracker.Validate();
+  } catch (const Error& e) {
+    throw Error(std::string("~track_* parameters: ") + e.what());
+  }
+  p.tracker.filter = !p.output_frame.empty();
+  Get(pnh, "tf_from_validated_tracks", p.tf_from_validated_tracks);
   return p;
 }
 
@@ -247,6 +277,7 @@ std::vector<std::string> UnknownParameters(const ros::NodeHandle& pnh) {
   DetectorConfig detector;
   PreprocessOptions preprocess;
   ForEachField(detector, preprocess, [&known](const auto& field, auto&) { known.insert(field.name); });
+  ForEachTrackField([&known](const auto& field) { known.insert(field.name); });
 
   std::vector<std::string> names;
   ros::param::getParamNames(names);
@@ -270,6 +301,19 @@ ArucotagDetectorConfig ToReconfigure(DetectorConfig detector, PreprocessOptions 
   config.corner_refinement = CornerRefinementName(detector.corner_refinement);
   ForEachField(detector, preprocess, [&config](const auto& field, auto& core) { config.*field.live = core.*field.core; });
   return config;
+}
+
+void ApplyTrackReconfigure(const ArucotagDetectorConfig& config, TrackerConfig& tracker, bool& tf_from_validated_tracks) {
+  TrackerConfig fresh = tracker;
+  ForEachTrackField([&](const auto& field) { fresh.*field.core = config.*field.live; });
+  fresh.Validate();
+  tracker = fresh;
+  tf_from_validated_tracks = config.tf_from_validated_tracks;
+}
+
+void TrackToReconfigure(const TrackerConfig& tracker, bool tf_from_validated_tracks, ArucotagDetectorConfig& config) {
+  ForEachTrackField([&](const auto& field) { config.*field.live = tracker.*field.core; });
+  config.tf_from_validated_tracks = tf_from_validated_tracks;
 }
 
 }  // namespace arucotag

@@ -11,8 +11,10 @@
 
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <arucotag/TagTracks.h>
 #include <rosbag/bag.h>
 #include <tf2_msgs/TFMessage.h>
+#include <tf2_ros/static_transform_broadcaster.h>
 
 #include "rig.hpp"
 
@@ -373,6 +375,74 @@ TEST(StampPatterns, CloudsArriving100MsLate) {
     before_cloud += it->second < cloud_sent;
   }
   EXPECT_GE(before_cloud, 10) << "most images must be answered before their cloud exists";
+}
+
+// The photo stream with ~output_frame world (a static TF away from the camera) and
+// ~tf_from_validated_tracks: one track per marker, validated at its third frame, its filtered pose
+// the photo's reference pose moved into world, tighter than one detection's; TF only once validated.
+TEST(StampPatterns, ValidatedTracksOnThePhotoStream) {
+  Instance instance(*nh, "tracks");
+  Collector<TagTracks> tracks(*nh, "/tracks/tracks");
+  std::mutex mutex;
+  std::map<ros::Time, std::vector<std::string>> tf_children;
+  ros::Subscriber tf = nh->subscribe<tf2_msgs::TFMessage>("/tf", 100, [&](const tf2_msgs::TFMessageConstPtr& msg) {
+    std::lock_guard<std::mutex> lock(mutex);
+    for (const auto& t : msg->transforms) tf_children[t.header.stamp].push_back(t.child_frame_id);
+  });
+  // world <- camera: 1 m up, 2 m ahead, the optical frame looking along world x.
+  const cv::Matx33d world_rotation(0, 0, 1, -1, 0, 0, 0, -1, 0);
+  const cv::Vec3d world_translation(2.0, 0.0, 1.0);
+  tf2_ros::StaticTransformBroadcaster statics;
+  geometry_msgs::TransformStamped world;
+  world.header.frame_id = "world";
+  world.child_frame_id = kFrame;
+  world.transform.translation.x = world_translation[0];
+  world.transform.translation.z = world_translation[2];
+  world.transform.rotation.x = world.transform.rotation.z = -0.5;  // the matrix above as a quaternion
+  world.transform.rotation.y = world.transform.rotation.w = 0.5;
+  statics.sendTransform(world);
+  ASSERT_TRUE(instance.Ready());
+  const ros::Time start = ros::Time::now();
+  instance.info.publish(RaspiInfo(start));
+  ros::WallDuration(0.5).sleep();  // the static TF reaches the detector's listener
+  const int frames = 6;
+  for (int i = 0; i < frames; ++i) {
+    const ros::Time stamp = start + ros::Duration(0.1 * (i + 1));
+    instance.image.publish(PhotoImage(TwoTags(), stamp));
+    const auto msg = tracks.Wait(stamp, 5.0);
+    ASSERT_TRUE(msg) << "frame " << i;
+    EXPECT_EQ(msg->header.frame_id, "world");
+    ASSERT_EQ(msg->tracks.size(), 2u) << "frame " << i;
+    const auto tags = instance.tags.Wait(stamp, 5.0);
+    ASSERT_TRUE(tags);
+    for (const auto& track : msg->tracks) {
+      const auto truth = TwoTags().corners.find(track.id);
+      ASSERT_NE(truth, TwoTags().corners.end()) << "track of id " << track.id;
+      EXPECT_EQ(track.cameras, std::vector<std::string>{kFrame});
+      EXPECT_EQ(track.hits, static_cast<uint32_t>(i + 1));
+      EXPECT_EQ(track.misses, 0u);
+      EXPECT_EQ(track.validated, i >= 2) << "frame " << i;
+      EXPECT_TRUE(track.filtered);
+      EXPECT_EQ(track.last_seen, stamp);
+      cv::Matx33d rotation;
+      cv::Vec3d position;
+      ReferencePose(truth->second, rotation, position);
+      EXPECT_TRUE(PoseMatches(track.pose.pose, world_rotation * rotation, world_rotation * position + world_translation,
+                              cv::norm(position)));
+      const auto detection = std::find_if(tags->tags.begin(), tags->tags.end(),
+                                          [&](const TagMsg& tag) { return tag.id == track.id; });
+      ASSERT_NE(detection, tags->tags.end());
+      if (i > 0) {  // the filter holds several frames' worth: below one detection's variance along the view
+        EXPECT_LT(track.pose.covariance[0], detection->covariance[0]) << "frame " << i;
+      }
+    }
+  }
+  ros::WallDuration(0.3).sleep();
+  std::lock_guard<std::mutex> lock(mutex);
+  for (int i = 0; i < frames; ++i) {
+    const auto& children = tf_children[start + ros::Duration(0.1 * (i + 1))];
+    EXPECT_EQ(children.size(), i >= 2 ? 2u : 0u) << "frame " << i << ": TF only from validated tracks";
+  }
 }
 
 }  // namespace

@@ -11,6 +11,7 @@
 #include <arucotag/detector.hpp>
 #include <arucotag/pose.hpp>
 #include <arucotag/preprocess.hpp>
+#include <arucotag/tracker.hpp>
 
 namespace arucotag {
 
@@ -35,6 +36,10 @@ struct NodeletParameters {
   double camera_info_wait = 1.0;     ///< s images wait for the first camera_info (only before one has come)
   double cloud_max_dt = 0.1;         ///< s, largest stamp difference of an image and the cloud it is paired with
   int cloud_cache_size = 4;          ///< clouds kept for pairing (they are large)
+  /// ~track_*: validation, dropping, gate, process noise, association. `filter` follows output_frame:
+  /// only a frame that does not move with the camera gives poses worth filtering.
+  TrackerConfig tracker;
+  bool tf_from_validated_tracks = false;  ///< TF from validated tracks' filtered poses, not from detections
 };
 
 /// Reads and validates the private parameters. Throws arucotag::Error naming the offending
@@ -50,5 +55,12 @@ void ApplyReconfigure(const ArucotagDetectorConfig& config, DetectorConfig& dete
 
 /// The dynamic_reconfigure view of the values in use.
 ArucotagDetectorConfig ToReconfigure(DetectorConfig detector, PreprocessOptions preprocess);
+
+/// Copies the live-tunable track values (~track_*, ~tf_from_validated_tracks) out of a config; the
+/// tracker's `filter` stays. Throws arucotag::Error when they are not a valid TrackerConfig.
+void ApplyTrackReconfigure(const ArucotagDetectorConfig& config, TrackerConfig& tracker, bool& tf_from_validated_tracks);
+
+/// Sets the track values of a dynamic_reconfigure config to the ones in use.
+void TrackToReconfigure(const TrackerConfig& tracker, bool tf_from_validated_tracks, ArucotagDetectorConfig& config);
 
 }  // namespace arucotag
