@@ -8,6 +8,7 @@
 
 #include <arucotag/ArucotagDetectorConfig.h>
 #include <arucotag/aruco_tag.hpp>
+#include <arucotag/bundle.hpp>
 #include <arucotag/detector.hpp>
 #include <arucotag/pose.hpp>
 #include <arucotag/preprocess.hpp>
@@ -35,6 +36,7 @@ struct NodeletParameters {
   double camera_info_wait = 1.0;     ///< s images wait for the first camera_info (only before one has come)
   double cloud_max_dt = 0.1;         ///< s, largest stamp difference of an image and the cloud it is paired with
   int cloud_cache_size = 4;          ///< clouds kept for pairing (they are large)
+  std::vector<MarkerBundle> bundles;  ///< ~bundles (config/urc_bundles.yaml), validated; empty: none
 };
 
 /// Reads and validates the private parameters. Throws arucotag::Error naming the offending
