@@ -152,6 +152,15 @@ bundles:
       - {id: 3, size: 0.15}
 )";
 
+std::string ErrorOfText(const std::string& text) {
+  try {
+    BundlesFromText(text);
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "no error";
+}
+
 TEST(BundleConfig, ParsesNamesFramesSizesAndPoses) {
   const auto bundles = BundlesFromText(kTwoPosts);
   ASSERT_EQ(bundles.size(), 2u);
@@ -172,6 +181,15 @@ TEST(BundleConfig, ParsesNamesFramesSizesAndPoses) {
   EXPECT_NEAR(corners[0].y, 0.1, 1e-12);
   EXPECT_NEAR(corners[0].z, 0.1, 1e-12);
   EXPECT_EQ(bundles[1].members[0].rotation, cv::Matx33d::eye()) << "rpy_deg defaults to 0 0 0";
+  // JSON, as the nodelet hands over what rosparam loaded.
+  const auto json = BundlesFromText(
+      R"({"bundles": [{"name": "p", "members": [{"id": 9, "size": 0.2, "rpy_deg": [0, 0, 90.5]}]}]})");
+  ASSERT_EQ(json.size(), 1u);
+  EXPECT_EQ(json[0].members[0].id, 9);
+  EXPECT_NEAR(json[0].members[0].rotation(1, 0), std::sin(90.5 * kDeg), 1e-12);
+  EXPECT_NE(ErrorOfText(R"({"bundles": [{"name": "p", "members": [{"id": 9, "size": "true"}]}]})")
+                .find("bundle 'p' member id 9 size must be a number"),
+            std::string::npos);
   EXPECT_TRUE(BundlesFromText("bundles: []").empty());
   EXPECT_TRUE(BundlesFromText("other: 1").empty());
 }
@@ -180,15 +198,6 @@ TEST(BundleConfig, TheUrcExampleLoads) {
   const auto bundles = LoadBundles(std::string(ARUCOTAG_SOURCE_DIR) + "/config/urc_bundles.yaml");
   ASSERT_FALSE(bundles.empty());
   for (const auto& b : bundles) EXPECT_GE(b.members.size(), 3u) << b.name;
-}
-
-std::string ErrorOfText(const std::string& text) {
-  try {
-    BundlesFromText(text);
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "no error";
 }
 
 TEST(BundleConfig, InvalidConfigsNameTheBundleAndId) {
