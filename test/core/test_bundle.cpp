@@ -243,7 +243,8 @@ TEST(BundleConfig, InvalidConfigsNameTheBundleAndId) {
 
 // A three-faced post at 3, 8 and 15 m, seen from random azimuths that show two faces: the joint
 // pose's mean position and rotation errors are at most those of the face a tracker would trust
-// most (smallest covariance), and its rotation error at most that of the luckiest face of each view.
+// most (smallest covariance), and its rotation error at most that of the luckiest face of each
+// view; its covariance is consistent with its errors (mean NEES in [0.25, 2] x 3).
 TEST(BundlePose, ThreeFacedPostBeatsItsBestFaceAt3And8And15m) {
   const sim::Camera sim_camera = sim::MakeCamera({1920, 1080}, 40.0);  // a mast camera zoomed for range
   const CameraModel camera = test::ToModel(sim_camera);
@@ -252,6 +253,7 @@ TEST(BundlePose, ThreeFacedPostBeatsItsBestFaceAt3And8And15m) {
   for (double range : {3.0, 8.0, 15.0}) {
     Errors bundle, trusted, oracle;
     int joint = 0;
+    double nees_t = 0.0, nees_r = 0.0;
     for (int view = 0; view < kViews; ++view) {
       cv::RNG rng(static_cast<uint64_t>(1000 * range + view));
       const double side = rng.uniform(0, 2) == 0 ? 1.0 : -1.0;
@@ -271,7 +273,16 @@ TEST(BundlePose, ThreeFacedPostBeatsItsBestFaceAt3And8And15m) {
         sum->rotation += e.rotation / kViews;
       }
       joint += estimate.member_ids.size() >= 2;
+      nees_t += test::Nees(estimate.covariance, 0, estimate.tvec - truth.tvec) / kViews;
+      nees_r += test::Nees(estimate.covariance, 3, test::RotationResidual(estimate.rvec, truth.rvec)) / kViews;
     }
+    // The corner-noise prior calibrated for lone faces (PnP's NEES) outweighs the joint residual
+    // on these clean renders: the covariance errs on the safe side, by up to 3x in variance.
+    std::printf("%4.0f m: bundle mean NEES translation %.2f, rotation %.2f (3 expected)\n", range, nees_t, nees_r);
+    EXPECT_GT(nees_t, 0.75) << range << " m";
+    EXPECT_LT(nees_t, 6.0) << range << " m";
+    EXPECT_GT(nees_r, 0.75) << range << " m";
+    EXPECT_LT(nees_r, 6.0) << range << " m";
     std::printf("%4.0f m, mean of %d views (%d with two faces): bundle %.2f mm %.4f deg, most trusted face %.2f mm "
                 "%.4f deg, luckiest face %.2f mm %.4f deg\n",
                 range, kViews, joint, 1e3 * bundle.position, bundle.rotation / kDeg, 1e3 * trusted.position,
