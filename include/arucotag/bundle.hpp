@@ -85,8 +85,8 @@ struct BundlePose {
 /// the members; a face turned away from the camera matches nothing), and one Levenberg-Marquardt
 /// PnP (cv::solvePnPRefineLM, on normalized points as EstimatePoseFromPNP) runs over all 4k
 /// corners. The start is the best of the hypotheses "detection d is member m" from both IPPE
-/// solutions of each detection with the member's side length: the one that matches most members,
-/// then the lowest error. With one member seen and a cloud result on its detection
+/// solutions of each detection with the member's side length (a pair a joint hypothesis already
+/// matched seeds none): the one that matches most members, then the lowest error. With one member seen and a cloud result on its detection
 /// (EstimatePoseFromPointCloud ran on the tag), the cloud picks between its two solutions as
 /// FusedChoice does for a tag; two faces at an angle fix the pose without it. Returns a pose with
 /// valid false when no member is seen or no solution is in front of the camera. Throws

@@ -125,13 +125,14 @@ class Solver {
   }
 
   // Matches sightings to members at the hypothesis' pose (the seed's pair kept), refines over all
-  // of them, matches again from the refined pose. False when the seed's member projects badly.
+  // of them, matches again from the refined pose (and refines again when that changed the
+  // matches). False when a matched corner falls behind the camera.
   bool Complete(Hypothesis& h) const {
-    for (int round = 0; round < 2; ++round) {
-      Match(h);
-      if (!Refine(h)) return false;
-    }
-    return true;
+    Match(h);
+    if (!Refine(h)) return false;
+    const auto first = h.matches;
+    Match(h);
+    return h.matches == first || Refine(h);
   }
 
   // Fills the hypothesis' error and Jacobian at its pose over its matches; false when a point is
@@ -399,10 +400,17 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
   const Solver solver(camera, bundle, sightings);
   std::vector<Hypothesis> hypotheses;
   std::map<std::pair<int, int>, ArucoTag> seeds;  // (sighting, member) -> the detection's own PnP
+  const Hypothesis* best = nullptr;
   for (size_t s = 0; s < sightings.size(); ++s) {
     for (size_t m = 0; m < bundle.members.size(); ++m) {
       const BundleMember& member = bundle.members[m];
       if (member.id != tags[sightings[s].tag].id) continue;
+      // A face already matched by a joint hypothesis would seed that same joint minimum again.
+      const std::pair<int, int> pair(static_cast<int>(s), static_cast<int>(m));
+      if (best && best->matches.size() > 1 &&
+          std::find(best->matches.begin(), best->matches.end(), pair) != best->matches.end()) {
+        continue;
+      }
       ArucoTag seed = tags[sightings[s].tag];
       seed.side_length = member.side_length;
       if (!EstimatePoseFromPNP(camera, seed)) continue;
@@ -414,14 +422,14 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
         h.seed_solution = solution;
         if (solver.Complete(h)) hypotheses.push_back(h);
       }
-      seeds.emplace(std::make_pair(static_cast<int>(s), static_cast<int>(m)), seed);
+      seeds.emplace(pair, seed);
+      best = nullptr;  // the vector may have moved
+      for (const auto& h : hypotheses) {
+        if (!best || h.Better(*best)) best = &h;
+      }
     }
   }
-  if (hypotheses.empty()) return result;
-  const Hypothesis* best = &hypotheses[0];
-  for (const auto& h : hypotheses) {
-    if (h.Better(*best)) best = &h;
-  }
+  if (!best) return result;
   result.pose_source = PoseSource::kPnp;
   if (best->matches.size() == 1) {
     // One face: the planar ambiguity is the tag's, and so is the cloud's say in it.
