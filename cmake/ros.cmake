@@ -64,6 +64,13 @@ if(CATKIN_ENABLE_TESTING)
   target_link_libraries(test_ros_bad_input arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
   add_dependencies(test_ros_bad_input arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
 
+  # Marker bundles (config/urc_bundles.yaml) through the shipped launch file: pose, output_frame, TF.
+  add_rostest_gtest(test_ros_bundles test/ros/bundles.test test/ros/test_bundles.cpp test/ros/rig.cpp)
+  target_include_directories(test_ros_bundles PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+  target_include_directories(test_ros_bundles SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+  target_link_libraries(test_ros_bundles arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
+  add_dependencies(test_ros_bundles arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+
   # Stamp patterns of real drivers and bags, on the real photos in test/data.
   add_rostest_gtest(test_ros_stamps test/ros/stamps.test test/ros/test_stamps.cpp test/ros/rig.cpp)
   target_include_directories(test_ros_stamps PRIVATE ${ARUCOTAG_ROS_INCLUDES})

@@ -3,6 +3,7 @@ set(ARUCOTAG_TEST_DATA "${CMAKE_CURRENT_SOURCE_DIR}/test/data")
 
 catkin_add_gtest(test_core
   test/core/test_bad_input.cpp
+  test/core/test_bundle.cpp
   test/core/test_depth_noise.cpp
   test/core/test_draw.cpp
   test/core/test_camera_model.cpp

@@ -7,6 +7,8 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "reprojection.hpp"
+
 namespace arucotag {
 
 PixelMapping PixelMapping::FromBinningAndRoi(int binning_x, int binning_y, const cv::Point2d& roi_offset) {
@@ -143,16 +145,7 @@ constexpr double kCornerSigmaSmallSide = 16.0;
 constexpr double kCornerSigmaPriorDof = 2.0;
 
 using Jacobian = cv::Matx<double, 8, 6>;
-
-cv::Matx33d Skew(const cv::Vec3d& v) { return {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0}; }
-
-// Angle (rad) of the rotation between two Rodrigues rotations.
-double RotationAngle(const cv::Vec3d& a, const cv::Vec3d& b) {
-  cv::Matx33d ra, rb;
-  cv::Rodrigues(a, ra);
-  cv::Rodrigues(b, rb);
-  return std::acos(std::max(-1.0, std::min(1.0, (cv::trace(ra.t() * rb) - 1.0) / 2.0)));
-}
+using internal::RotationAngle;
 
 // One pose of the marker and what its four corners say about it.
 struct Candidate {
@@ -165,43 +158,23 @@ struct Candidate {
 };
 
 // Projects the corners at (rvec, tvec) through the camera's lens and pixel mapping and fills the
-// candidate. A camera-frame point P = R X + t has dP/dt = I, so OpenCV's tvec columns are the
-// projection's derivative by P for either lens model; a left rotation dtheta moves P by dtheta x P.
-// Returns false behind the camera or when the error is not finite.
+// candidate. Returns false behind the camera or when the error is not finite.
 bool Evaluate(const CameraModel& camera, const std::vector<cv::Point3d>& object, const std::vector<cv::Point2d>& image,
               const cv::Vec3d& rvec, const cv::Vec3d& tvec, Candidate& out) {
   if (!(tvec[2] > 0.0)) return false;
   std::vector<cv::Point2d> projected;
   cv::Mat jacobian;
-  int t_column = 3;  // cv::projectPoints: rvec, tvec, f, c, distortion
-  if (camera.distortion_model == DistortionModel::kEquidistant) {
-    cv::fisheye::projectPoints(object, projected, rvec, tvec, camera.K, camera.distortion, 0.0, jacobian);
-    t_column = 11;  // cv::fisheye::projectPoints: f, c, k1..k4, rvec, tvec, alpha
-  } else {
-    cv::projectPoints(object, rvec, tvec, camera.K, camera.distortion, projected, jacobian);
-  }
-  cv::Matx33d rotation;
-  cv::Rodrigues(rvec, rotation);
+  if (!internal::ProjectWithJacobian(camera, object, rvec, tvec, projected, jacobian)) return false;
   out.rvec = rvec;
   out.tvec = tvec;
   for (size_t k = 0; k < object.size(); ++k) {
-    const cv::Point2d d = camera.pixels.ToImage(projected[k]) - image[k];
-    out.residual[2 * k] = d.x;
-    out.residual[2 * k + 1] = d.y;
-    const cv::Matx33d rotate = -Skew(rotation * cv::Vec3d(object[k].x, object[k].y, object[k].z));
-    for (int axis = 0; axis < 2; ++axis) {
-      const int row = static_cast<int>(2 * k) + axis;
-      const double* j = jacobian.ptr<double>(row) + t_column;
-      const cv::Matx13d by_point = cv::Matx13d(j[0], j[1], j[2]) * (1.0 / camera.pixels.scale[axis]);
-      const cv::Matx13d by_rotation = by_point * rotate;
-      for (int c = 0; c < 3; ++c) {
-        out.jacobian(row, c) = by_point(0, c);
-        out.jacobian(row, 3 + c) = by_rotation(0, c);
-      }
-    }
+    out.residual[2 * k] = projected[k].x - image[k].x;
+    out.residual[2 * k + 1] = projected[k].y - image[k].y;
   }
-  const double sum_sq = out.SumSq();
-  return std::isfinite(sum_sq) && cv::checkRange(cv::Mat(out.jacobian));
+  for (int r = 0; r < Jacobian::rows; ++r) {
+    for (int c = 0; c < Jacobian::cols; ++c) out.jacobian(r, c) = jacobian.at<double>(r, c);
+  }
+  return std::isfinite(out.SumSq());
 }
 
 // The share of the squared error one Gauss-Newton step from the candidate would remove: near 0 at
@@ -214,14 +187,71 @@ double OffMinimumShare(const Candidate& c) {
   return sum_sq > 0.0 ? gradient.dot(step) / sum_sq : 0.0;
 }
 
-// sigma^2 (J^T J)^-1: first order, at the candidate's own minimum. Unknown when J is singular.
-PoseCovariance Covariance(const Candidate& c, double sigma) {
+}  // namespace
+
+namespace internal {
+
+cv::Matx33d Skew(const cv::Vec3d& v) { return {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0}; }
+
+double RotationAngle(const cv::Vec3d& a, const cv::Vec3d& b) {
+  cv::Matx33d ra, rb;
+  cv::Rodrigues(a, ra);
+  cv::Rodrigues(b, rb);
+  return std::acos(std::max(-1.0, std::min(1.0, (cv::trace(ra.t() * rb) - 1.0) / 2.0)));
+}
+
+// A camera-frame point P = R X + t has dP/dt = I, so OpenCV's tvec columns are the projection's
+// derivative by P for either lens model; a left rotation dtheta moves P by dtheta x P.
+bool ProjectWithJacobian(const CameraModel& camera, const std::vector<cv::Point3d>& object, const cv::Vec3d& rvec,
+                         const cv::Vec3d& tvec, std::vector<cv::Point2d>& projected, cv::Mat& jacobian) {
+  cv::Matx33d rotation;
+  cv::Rodrigues(rvec, rotation);
+  for (const auto& x : object) {
+    if (!((rotation * cv::Vec3d(x.x, x.y, x.z) + tvec)[2] > 0.0)) return false;
+  }
+  cv::Mat opencv_jacobian;
+  int t_column = 3;  // cv::projectPoints: rvec, tvec, f, c, distortion
+  if (camera.distortion_model == DistortionModel::kEquidistant) {
+    cv::fisheye::projectPoints(object, projected, rvec, tvec, camera.K, camera.distortion, 0.0, opencv_jacobian);
+    t_column = 11;  // cv::fisheye::projectPoints: f, c, k1..k4, rvec, tvec, alpha
+  } else {
+    cv::projectPoints(object, rvec, tvec, camera.K, camera.distortion, projected, opencv_jacobian);
+  }
+  jacobian.create(static_cast<int>(2 * object.size()), 6, CV_64F);
+  for (size_t k = 0; k < object.size(); ++k) {
+    projected[k] = camera.pixels.ToImage(projected[k]);
+    const cv::Matx33d rotate = -Skew(rotation * cv::Vec3d(object[k].x, object[k].y, object[k].z));
+    for (int axis = 0; axis < 2; ++axis) {
+      const int row = static_cast<int>(2 * k) + axis;
+      const double* j = opencv_jacobian.ptr<double>(row) + t_column;
+      const cv::Matx13d by_point = cv::Matx13d(j[0], j[1], j[2]) * (1.0 / camera.pixels.scale[axis]);
+      const cv::Matx13d by_rotation = by_point * rotate;
+      double* out = jacobian.ptr<double>(row);
+      for (int c = 0; c < 3; ++c) {
+        out[c] = by_point(0, c);
+        out[3 + c] = by_rotation(0, c);
+      }
+    }
+    if (!std::isfinite(projected[k].x) || !std::isfinite(projected[k].y)) return false;
+  }
+  return cv::checkRange(jacobian);
+}
+
+double PooledCornerSigma(double sum_sq, double residual_dof, double side_px) {
+  const double prior_sigma =
+      kCornerSigmaPrior * std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth) *
+      std::pow(std::max(1.0, kCornerSigmaSmallSide / std::max(side_px, 1.0)), 2);
+  const double prior = kCornerSigmaPriorDof * prior_sigma * prior_sigma;
+  return std::sqrt((prior + sum_sq) / (kCornerSigmaPriorDof + residual_dof));
+}
+
+PoseCovariance CovarianceFromNormalMatrix(const cv::Matx66d& jtj, double sigma) {
   cv::Matx66d inverse;
-  if (cv::invert(c.jacobian.t() * c.jacobian, inverse, cv::DECOMP_CHOLESKY) == 0.0) return UnknownCovariance();
+  if (cv::invert(jtj, inverse, cv::DECOMP_CHOLESKY) == 0.0) return UnknownCovariance();
   return inverse * (sigma * sigma);
 }
 
-}  // namespace
+}  // namespace internal
 
 bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   camera.Validate();
@@ -318,16 +348,13 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   // unknowns) pooled with the prior. The second solution's residual is its own misfit, not noise.
   double side_px = 0.0;
   for (size_t k = 0; k < image.size(); ++k) side_px += 0.25 * cv::norm(image[(k + 1) % image.size()] - image[k]);
-  const double prior_sigma = kCornerSigmaPrior *
-                             std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth) *
-                             std::pow(std::max(1.0, kCornerSigmaSmallSide / std::max(side_px, 1.0)), 2);
-  const double prior = kCornerSigmaPriorDof * prior_sigma * prior_sigma;
-  result.corner_sigma = std::sqrt((prior + pair[0].SumSq()) / (kCornerSigmaPriorDof + 2.0));
+  result.corner_sigma = internal::PooledCornerSigma(pair[0].SumSq(), 2.0, side_px);
   for (size_t i = 0; i < pair.size() && i < 2; ++i) {
     result.rvec[i] = pair[i].rvec;
     result.tvec[i] = pair[i].tvec;
     result.rms[i] = pair[i].Rms();
-    result.covariance[i] = Covariance(pair[i], result.corner_sigma);
+    result.covariance[i] =
+        internal::CovarianceFromNormalMatrix(pair[i].jacobian.t() * pair[i].jacobian, result.corner_sigma);
     ++result.solutions;
   }
   if (result.solutions == 2) {

@@ -291,14 +291,46 @@ visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
 
 geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,
                                             const std::string& child_frame) {
+  return ToTransform(tag.pose, header, child_frame);
+}
+
+geometry_msgs::TransformStamped ToTransform(const geometry_msgs::Pose& pose, const std_msgs::Header& header,
+                                            const std::string& child_frame) {
   geometry_msgs::TransformStamped transform;
   transform.header = header;
   transform.child_frame_id = child_frame;
-  transform.transform.translation.x = tag.pose.position.x;
-  transform.transform.translation.y = tag.pose.position.y;
-  transform.transform.translation.z = tag.pose.position.z;
-  transform.transform.rotation = tag.pose.orientation;
+  transform.transform.translation.x = pose.position.x;
+  transform.transform.translation.y = pose.position.y;
+  transform.transform.translation.z = pose.position.z;
+  transform.transform.rotation = pose.orientation;
   return transform;
+}
+
+BundleArray ToMessage(const std::vector<BundlePose>& bundles, const std::vector<std::string>& child_frames,
+                      const std_msgs::Header& header, const geometry_msgs::TransformStamped* to_output) {
+  BundleArray array;
+  array.header = header;
+  array.camera_frame_id = header.frame_id;
+  if (to_output) array.header.frame_id = to_output->header.frame_id;
+  for (size_t i = 0; i < bundles.size(); ++i) {
+    const BundlePose& b = bundles[i];
+    if (!b.valid) continue;
+    Bundle msg;
+    msg.name = b.name;
+    msg.child_frame_id = i < child_frames.size() ? child_frames[i] : std::string();
+    msg.pose_source = b.pose_source == PoseSource::kFused ? Bundle::FUSED : Bundle::PNP;
+    msg.camera_pose.pose = ToPose(b.rvec, b.tvec);
+    std::copy(b.covariance.val, b.covariance.val + 36, msg.camera_pose.covariance.begin());  // both row-major
+    msg.pose = msg.camera_pose;
+    if (to_output) {
+      tf2::doTransform(msg.camera_pose.pose, msg.pose.pose, *to_output);
+      RotateCovariance(to_output->transform.rotation, msg.pose.covariance);
+    }
+    msg.member_ids = b.member_ids;
+    msg.reprojection_error = b.reprojection_error;
+    array.bundles.push_back(msg);
+  }
+  return array;
 }
 
 bool BetterMeasured(const ArucoTagMsg& a, const ArucoTagMsg& b) {

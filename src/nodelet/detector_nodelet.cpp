@@ -111,6 +111,8 @@ class DetectorNodelet : public nodelet::Nodelet {
   void Publish(const ImageConstPtr& image, const ArucoTagArray& array, const std::vector<ArucoTag>& tags,
                const TagTracks& tracks);
   void PublishTf(const ArucoTagArray& array, const TagTracks& tracks);
+  void PublishBundles(const std_msgs::Header& header, const CameraModel& camera, const std::vector<ArucoTag>& tags,
+                      const geometry_msgs::TransformStamped* to_output);
   std::string ChildFramePrefix(const std::string& camera_frame) const;
 
   void OnReconfigure(ArucotagDetectorConfig& config, uint32_t level);
@@ -147,7 +149,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::map<const Image*, Clock::time_point> arrived_;          // arrival of images not yet processed
 
   // Outputs.
-  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_;
+  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_, bundles_pub_;
   image_transport::Publisher overlay_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
@@ -249,6 +251,7 @@ void DetectorNodelet::Start() {
   tracks_pub_ = nh_.advertise<TagTracks>("tracks", 10, connect, connect);
   track_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("track_markers", 1, connect, connect);
   overlay_pub_ = it_->advertise("overlay", 1, connect_image, connect_image);
+  if (!params_.bundles.empty()) bundles_pub_ = nh_.advertise<BundleArray>("bundles", 10, connect, connect);
   if (params_.publish_tf) Subscribe();  // TF has no subscriber count: it always counts as listening
   const char* transport = params_.transport == Transport::kRaw          ? "raw"
                           : params_.transport == Transport::kCompressed ? "compressed"
@@ -257,6 +260,10 @@ void DetectorNodelet::Start() {
                nh_.resolveName("image").c_str(), transport, params_.use_point_cloud ? " with points from " : "",
                params_.use_point_cloud ? nh_.resolveName("points").c_str() : "",
                params_.output_frame.empty() ? "" : ", poses in ", params_.output_frame.c_str());
+  if (!params_.bundles.empty()) {
+    NODELET_INFO("%zu marker bundles (~bundles), published on %s", params_.bundles.size(),
+                 nh_.resolveName("bundles").c_str());
+  }
 }
 
 void DetectorNodelet::ConnectCallback() {
@@ -264,7 +271,8 @@ void DetectorNodelet::ConnectCallback() {
   if (shutting_down_ || !inert_reason_.empty()) return;
   const bool listening = params_.publish_tf || tags_pub_.getNumSubscribers() > 0 ||
                          markers_pub_.getNumSubscribers() > 0 || overlay_pub_.getNumSubscribers() > 0 ||
-                         tracks_pub_.getNumSubscribers() > 0 || track_markers_pub_.getNumSubscribers() > 0;
+                         tracks_pub_.getNumSubscribers() > 0 || track_markers_pub_.getNumSubscribers() > 0 ||
+                         bundles_pub_.getNumSubscribers() > 0;
   if (listening && !subscribed_) {
     Subscribe();
   } else if (!listening && subscribed_) {
@@ -469,6 +477,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
   }
   const ArucoTagArray array = ToMessage(tags, header, to_output ? &*to_output : nullptr);
   Publish(image, array, tags, UpdateTracks(tags, header, to_output));
+  if (camera && !params_.bundles.empty()) PublishBundles(header, *camera, tags, to_output ? &*to_output : nullptr);
 
   ++counts_.processed;
   const auto end = Clock::now();
@@ -640,6 +649,41 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tra
     }
     last = header.stamp;
     transforms.push_back(ToTransform(*tag, header, child));
+  }
+  if (!transforms.empty()) tf_broadcaster_->sendTransform(transforms);
+}
+
+void DetectorNodelet::PublishBundles(const std_msgs::Header& header, const CameraModel& camera,
+                                     const std::vector<ArucoTag>& tags,
+                                     const geometry_msgs::TransformStamped* to_output) {
+  std::vector<BundlePose> poses;
+  std::vector<std::string> children;
+  // Like the tags' default frames, one set per camera: <camera frame_id>/<bundle frame>.
+  const size_t begin = header.frame_id.find_first_not_of('/');
+  const std::string camera_frame = begin == std::string::npos ? std::string() : header.frame_id.substr(begin);
+  for (const auto& bundle : params_.bundles) {
+    try {
+      poses.push_back(EstimateBundlePose(camera, bundle, tags));
+    } catch (const std::exception& e) {
+      Fail("bundle " + bundle.name, "bundle '" + bundle.name + "': " + e.what());
+      poses.emplace_back();
+    }
+    children.push_back(camera_frame + "/" + bundle.frame);
+  }
+  const BundleArray array = ToMessage(poses, children, header, to_output);
+  bundles_pub_.publish(array);
+  if (!params_.publish_tf || array.header.frame_id.empty()) return;
+  std_msgs::Header parent = array.header;
+  if (parent.stamp.isZero()) parent.stamp = ros::Time::now();
+  std::vector<geometry_msgs::TransformStamped> transforms;
+  for (const auto& bundle : array.bundles) {
+    ros::Time& last = last_tf_stamp_[bundle.child_frame_id];
+    if (last == parent.stamp) {  // a repeated image stamp: listeners would reject it as TF_REPEATED_DATA
+      ++counts_.tf_repeats;
+      continue;
+    }
+    last = parent.stamp;
+    transforms.push_back(ToTransform(bundle.pose.pose, parent, bundle.child_frame_id));
   }
   if (!transforms.empty()) tf_broadcaster_->sendTransform(transforms);
 }

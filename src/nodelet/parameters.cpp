@@ -1,6 +1,7 @@
 #include <arucotag/ros/parameters.hpp>
 
 #include <cmath>
+#include <cstdio>
 #include <set>
 
 #include <ros/param.h>
@@ -92,7 +93,7 @@ const char* const kOtherNames[] = {
     "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
     "image_transport", "use_point_cloud", "queue_size", "pose_source", "publish_tf", "output_frame",
     "frame_prefix", "rectified", "camera_info_max_age", "camera_info_wait", "cloud_max_dt", "cloud_cache_size",
-    "depth_noise", "tf_from_validated_tracks",
+    "depth_noise", "tf_from_validated_tracks", "bundles",
     "diagnostic_period",  // diagnostic_updater's own
 };
 
@@ -163,6 +164,85 @@ std::map<int, double> ReadTagSizes(const ros::NodeHandle& pnh) {
     sizes[id] = side;
   }
   return sizes;
+}
+
+// A rosparam value as JSON, so the core's one bundle parser (BundlesFromText) reads ~bundles as it
+// reads the yaml file. Booleans and non-finite numbers become strings: the parser then names them
+// as values of the wrong type instead of reading true as 1.
+void AppendJson(XmlRpc::XmlRpcValue& value, std::string& out) {
+  using XmlRpc::XmlRpcValue;
+  const auto quoted = [&out](const std::string& text) {
+    out += '"';
+    for (const char c : text) {
+      if (c == '"' || c == '\\') {
+        out += '\\';
+        out += c;
+      } else if (static_cast<unsigned char>(c) < 0x20) {
+        out += ' ';
+      } else {
+        out += c;
+      }
+    }
+    out += '"';
+  };
+  switch (value.getType()) {
+    case XmlRpcValue::TypeInt:
+      out += std::to_string(static_cast<int>(value));
+      break;
+    case XmlRpcValue::TypeDouble: {
+      const double d = static_cast<double>(value);
+      if (!std::isfinite(d)) {
+        quoted(std::to_string(d));
+        break;
+      }
+      char text[32];
+      std::snprintf(text, sizeof(text), "%.17g", d);
+      out += text;
+      break;
+    }
+    case XmlRpcValue::TypeBoolean:
+      quoted(static_cast<bool>(value) ? "true" : "false");
+      break;
+    case XmlRpcValue::TypeString:
+      quoted(static_cast<std::string>(value));
+      break;
+    case XmlRpcValue::TypeArray:
+      out += '[';
+      for (int i = 0; i < value.size(); ++i) {
+        if (i > 0) out += ", ";
+        AppendJson(value[i], out);
+      }
+      out += ']';
+      break;
+    case XmlRpcValue::TypeStruct: {
+      out += '{';
+      bool first = true;
+      for (auto& [key, member] : value) {
+        if (!first) out += ", ";
+        first = false;
+        quoted(key);
+        out += ": ";
+        AppendJson(member, out);
+      }
+      out += '}';
+      break;
+    }
+    default:
+      throw Error("holds a value that is not a number, string, list or map");
+  }
+}
+
+std::vector<MarkerBundle> ReadBundles(const ros::NodeHandle& pnh) {
+  XmlRpc::XmlRpcValue value;
+  if (!pnh.getParam("bundles", value)) return {};
+  try {
+    std::string json = "{\"bundles\": ";
+    AppendJson(value, json);
+    json += '}';
+    return BundlesFromText(json);
+  } catch (const Error& e) {
+    throw Error(std::string("~bundles: ") + e.what());
+  }
 }
 
 void RequireIds(const std::vector<int>& ids, const std::string& name) {
@@ -269,6 +349,7 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   }
   p.tracker.filter = !p.output_frame.empty();
   Get(pnh, "tf_from_validated_tracks", p.tf_from_validated_tracks);
+  p.bundles = ReadBundles(pnh);
   return p;
 }
 

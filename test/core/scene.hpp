@@ -36,6 +36,22 @@ inline double RotationError(const cv::Vec3d& a, const cv::Vec3d& b) {
   return std::acos(c);
 }
 
+/// Small rotation (rad, about the camera axes) taking the truth to the estimate: R_est = exp([e]x) R_true.
+inline cv::Vec3d RotationResidual(const cv::Vec3d& estimate, const cv::Vec3d& truth) {
+  cv::Matx33d re, rt;
+  cv::Rodrigues(estimate, re);
+  cv::Rodrigues(truth, rt);
+  cv::Vec3d e;
+  cv::Rodrigues(re * rt.t(), e);
+  return e;
+}
+
+/// e^T C^-1 e for the 3x3 block of `covariance` starting at `first`.
+inline double Nees(const PoseCovariance& covariance, int first, const cv::Vec3d& e) {
+  const cv::Matx33d block = covariance.get_minor<3, 3>(first, first);
+  return e.dot(block.inv(cv::DECOMP_CHOLESKY) * e);
+}
+
 /// Renders the markers and runs the default detector (sub-pixel corners) on the grey image.
 inline std::vector<ArucoTag> RenderAndDetect(const sim::Camera& camera, const std::vector<sim::Marker>& markers,
                                              DetectorConfig config = {}, sim::RenderOptions options = {}) {

@@ -10,22 +10,8 @@ namespace arucotag {
 namespace {
 
 using test::kDeg;
-
-// Small rotation (rad, about the camera axes) taking the truth to the estimate: R_est = exp([e]x) R_true.
-cv::Vec3d RotationResidual(const cv::Vec3d& estimate, const cv::Vec3d& truth) {
-  cv::Matx33d re, rt;
-  cv::Rodrigues(estimate, re);
-  cv::Rodrigues(truth, rt);
-  cv::Vec3d e;
-  cv::Rodrigues(re * rt.t(), e);
-  return e;
-}
-
-// e^T C^-1 e for the 3x3 block of `covariance` starting at `first`.
-double Nees(const PoseCovariance& covariance, int first, const cv::Vec3d& e) {
-  const cv::Matx33d block = covariance.get_minor<3, 3>(first, first);
-  return e.dot(block.inv(cv::DECOMP_CHOLESKY) * e);
-}
+using test::Nees;
+using test::RotationResidual;
 
 // Corners with known Gaussian noise, solved many times: with the reported covariance rescaled to the
 // true noise (covariance / corner_sigma^2 * sigma^2), the mean NEES of translation and rotation is

@@ -80,6 +80,8 @@ TEST(Lifecycle, BadParametersAreNamedAndLeaveTheManagerAlive) {
       {"/bad_sizes/detector", "~tag_sizes"},        {"/bad_source/detector", "~pose_source"},
       {"/bad_type/detector", "~queue_size must be an integer"},
       {"/bad_windows/detector", "adaptive_thresh_win_size_max"},
+      {"/bad_bundles/detector", "~bundles: bundle 'post_b' member id 4: id 4 is also in bundle 'post_a'"},
+      {"/bad_bundle_size/detector", "~bundles: bundle 'post_a' member id 4: size must be > 0 m"},
   };
   for (const auto& [name, message] : cases) {
     SCOPED_TRACE(name);

@@ -17,7 +17,9 @@
 #include <std_msgs/Header.h>
 #include <visualization_msgs/MarkerArray.h>
 
+#include <arucotag/BundleArray.h>
 #include <arucotag/aruco_tag.hpp>
+#include <arucotag/bundle.hpp>
 #include <arucotag/pose.hpp>
 
 namespace arucotag {
@@ -67,6 +69,15 @@ visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags);
 /// The TF of one tag: parent = header.frame_id, child = `child_frame`, stamp = header.stamp.
 geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,
                                             const std::string& child_frame);
+/// The same for any pose in header.frame_id.
+geometry_msgs::TransformStamped ToTransform(const geometry_msgs::Pose& pose, const std_msgs::Header& header,
+                                            const std::string& child_frame);
+
+/// The bundles of one frame (those with a valid pose). `header` is the image's: camera_pose stays
+/// in its frame; pose is moved by `to_output` when given, and the header's frame_id becomes its
+/// parent frame (the ~output_frame). `child_frames[i]` names bundles[i]'s TF child frame.
+BundleArray ToMessage(const std::vector<BundlePose>& bundles, const std::vector<std::string>& child_frames,
+                      const std_msgs::Header& header, const geometry_msgs::TransformStamped* to_output = nullptr);
 
 /// Whether `a` is better measured than `b` (for choosing which of several faces with one id gets
 /// the TF): a pose beats none; with PnP on both, the lower reprojection error; otherwise more

@@ -8,6 +8,7 @@
 
 #include <arucotag/ArucotagDetectorConfig.h>
 #include <arucotag/aruco_tag.hpp>
+#include <arucotag/bundle.hpp>
 #include <arucotag/detector.hpp>
 #include <arucotag/pose.hpp>
 #include <arucotag/preprocess.hpp>
@@ -40,6 +41,7 @@ struct NodeletParameters {
   /// only a frame that does not move with the camera gives poses worth filtering.
   TrackerConfig tracker;
   bool tf_from_validated_tracks = false;  ///< TF from validated tracks' filtered poses, not from detections
+  std::vector<MarkerBundle> bundles;  ///< ~bundles (config/urc_bundles.yaml), validated; empty: none
 };
 
 /// Reads and validates the private parameters. Throws arucotag::Error naming the offending

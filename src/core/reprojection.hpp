@@ -1,0 +1,35 @@
+// Reprojection helpers shared by the single-marker and the bundle PnP (internal to arucotag_core).
+#pragma once
+
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include <arucotag/aruco_tag.hpp>
+#include <arucotag/pose.hpp>
+
+namespace arucotag::internal {
+
+/// The cross-product matrix of v: Skew(v) * w = v x w.
+cv::Matx33d Skew(const cv::Vec3d& v);
+
+/// Angle (rad) of the rotation between two Rodrigues rotations.
+double RotationAngle(const cv::Vec3d& a, const cv::Vec3d& b);
+
+/// Projects `object` (points in the frame that (rvec, tvec) carries into the optical frame) through
+/// the camera's lens and pixel mapping into this image's pixels, and fills `jacobian` (2N x 6,
+/// CV_64F, rows x then y of each point) with the derivative of each projection by (tvec, small
+/// rotation about the camera axes applied on the left), the parametrization of PoseCovariance.
+/// Returns false when a point is not in front of the camera or a value is not finite.
+bool ProjectWithJacobian(const CameraModel& camera, const std::vector<cv::Point3d>& object, const cv::Vec3d& rvec,
+                         const cv::Vec3d& tvec, std::vector<cv::Point2d>& projected, cv::Mat& jacobian);
+
+/// Corner noise (image px per coordinate) from a least-squares residual `sum_sq` with
+/// `residual_dof` degrees of freedom, pooled with the prior the renders calibrated for markers of
+/// mean side `side_px` (image px).
+double PooledCornerSigma(double sum_sq, double residual_dof, double side_px);
+
+/// sigma^2 (J^T J)^-1 from the normal matrix J^T J; unknown when it is singular.
+PoseCovariance CovarianceFromNormalMatrix(const cv::Matx66d& jtj, double sigma);
+
+}  // namespace arucotag::internal
