@@ -71,9 +71,9 @@ def merge_nodelet(results, path):
 
 
 def table(results):
-    lines = ["| frame set | detector | median ms | time / OpenCV | all cores ms | all cores / OpenCV | recall | "
-             "false pos. | corner err median px | corner err p95 px |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| frame set | detector | median ms | time / OpenCV | CPU ms | CPU / OpenCV | all cores ms | "
+             "all cores / OpenCV | recall | false pos. | corner err median px | corner err p95 px |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in results["sets"]:
         ref = s["methods"]["opencv"]
         first = True
@@ -81,7 +81,11 @@ def table(results):
             m = s["methods"].get(key)
             if m is None:
                 continue
-            ratio = m["median_ms"] / ref["median_ms"] if m.get("median_ms") and ref["median_ms"] else None
+            # The nodelet ran in bench_nodelet, at another time and at OpenCV's default threads: no ratio.
+            same_run = key != "nodelet"
+            ratio = m["median_ms"] / ref["median_ms"] if same_run and m.get("median_ms") else None
+            cpu = m.get("cpu_median_ms")
+            ratio_cpu = cpu / ref["cpu_median_ms"] if same_run and cpu and ref.get("cpu_median_ms") else None
             all_cores = m.get("all_cores_median_ms")
             ratio_all = (all_cores / ref["all_cores_median_ms"]
                          if all_cores and ref.get("all_cores_median_ms") else None)
@@ -90,7 +94,8 @@ def table(results):
             exact = s.get("exact_corners") and m.get("corner_errors", 0) > 0
             name = f"{s['name']} ({s['frames']} fr.)" if first else ""
             first = False
-            lines.append(f"| {name} | {m['label']} | {fmt(m.get('median_ms'))} | {fmt(ratio)} | {fmt(all_cores)} | "
+            lines.append(f"| {name} | {m['label']} | {fmt(m.get('median_ms'))} | {fmt(ratio)} | {fmt(cpu)} | "
+                         f"{fmt(ratio_cpu)} | {fmt(all_cores)} | "
                          f"{fmt(ratio_all)} | {rec} | {m.get('false_positives', '-')} | "
                          f"{fmt(m.get('corner_error_median_px'), 3) if exact else '-'} | "
                          f"{fmt(m.get('corner_error_p95_px'), 3) if exact else '-'} |")
@@ -206,14 +211,16 @@ def main():
         f"OpenCV {results['opencv']}, AprilTag {results.get('apriltag') or 'not built'}; "
         f"{results['threads']} OpenCV thread(s), AprilTag 1 thread; median wall-clock ms per frame over "
         f"{results['reps']} passes (the sequence: {max(1, results['reps'] // 2)}), every detector on each frame "
-        f"in turn" + (f"; all-cores columns: {all_cores} more passes at {results['hardware_threads']} threads for the "
+        f"in turn; CPU ms is the process's CPU time per frame (at 1 thread the work itself, without the waits "
+        f"for a core that wall time includes on a loaded machine)" + (f"; all-cores columns: {all_cores} more passes at {results['hardware_threads']} threads for the "
                       f"OpenCV-threaded detectors." if all_cores else "."),
         f"Generated {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC by `{args.command}`.",
         "",
         "Recall counts a marker found when its id is right and its centre within max(3 px, a quarter side) of "
         "the truth. Corner errors only where the truth is exact (rendered sets); the photos' corners are their "
         "publishers' labels. ArUco3 runs with OpenCV's defaults for it (minSideLengthCanonicalImg 32: markers "
-        "under about 32 px are not searched); AprilTag only on the tag36h11 sets.",
+        "under about 32 px are not searched); AprilTag only on the tag36h11 sets. The nodelet row comes from "
+        "bench_nodelet, a separate run at OpenCV's default threads: its time is not comparable to the others.",
         "",
     ]
     lines += table(results)
