@@ -105,15 +105,22 @@ def table(results):
 def targets(results):
     """Issue 14's targets that the default configuration misses, one line each."""
     misses = []
+
+    def ratios(m, ref):
+        """CPU and wall time over OpenCV's: the targets are checked on CPU time, which other processes
+        on a shared machine disturb far less than wall time."""
+        return m["cpu_median_ms"] / ref["cpu_median_ms"], m["median_ms"] / ref["median_ms"]
+
     for s in results["sets"]:
         ref, ours = s["methods"]["opencv"], s["methods"]["ours"]
-        ratio = ours["median_ms"] / ref["median_ms"]
-        if ratio > TARGET_RATIO:
-            misses.append(f"{s['name']}: ours {ratio:.2f} of OpenCV's time (target <= {TARGET_RATIO})")
-        video = s["methods"].get("ours_video")
-        if video and video["median_ms"] / ref["median_ms"] > TARGET_VIDEO_RATIO:
-            misses.append(f"{s['name']}: video mode {video['median_ms'] / ref['median_ms']:.2f} of OpenCV's time "
-                          f"(target <= {TARGET_VIDEO_RATIO})")
+        for key, target in (("ours", TARGET_RATIO), ("ours_video", TARGET_VIDEO_RATIO)):
+            m = s["methods"].get(key)
+            if m is None:
+                continue
+            cpu, wall = ratios(m, ref)
+            if cpu > target:
+                misses.append(f"{s['name']}: {m['label']} at {cpu:.2f} of OpenCV's CPU time ({wall:.2f} wall; "
+                              f"target <= {target})")
         best = max(PEERS, key=lambda k: recall(s["methods"][k]) if k in s["methods"] else -1)
         if recall(ours) is not None and recall(ours) < recall(s["methods"][best]):
             misses.append(f"{s['name']}: ours recall {recall(ours):.3f} < {best} {recall(s['methods'][best]):.3f}")
@@ -139,9 +146,9 @@ def targets(results):
     for size in ("640x480", "1280x720", "1920x1080"):
         one, fifty = by_name.get(f"synthetic {size}, 1 tag"), by_name.get(f"synthetic {size}, 50 tags")
         if one and fifty:
-            growth = fifty["methods"]["ours"]["median_ms"] / one["methods"]["ours"]["median_ms"]
+            growth = fifty["methods"]["ours"]["cpu_median_ms"] / one["methods"]["ours"]["cpu_median_ms"]
             if growth >= 2.0:
-                misses.append(f"{size}: ours takes {growth:.1f}x as long on 50 markers as on 1 (target < 2x)")
+                misses.append(f"{size}: ours takes {growth:.1f}x the CPU time on 50 markers as on 1 (target < 2x)")
     pose = results.get("pose_us", {}).get("median") or 0.0
     if pose >= TARGET_POSE_US:
         misses.append(f"pose median {pose:.1f} us per tag, target < {TARGET_POSE_US:.0f} us")
@@ -228,7 +235,8 @@ def main():
     lines += notes(results)
     misses = targets(results)
     lines.append("")
-    lines.append("Issue 14 targets missed by ours (default config, 1 thread):" + ("" if misses else " none."))
+    lines.append("Issue 14 targets missed by ours (default config, 1 thread; time targets on CPU time):"
+                 + ("" if misses else " none."))
     lines += [f"- {m}" for m in misses]
     text = "\n".join(lines)
     print(text)
