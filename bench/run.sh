@@ -45,10 +45,6 @@ else
 fi
 
 echo
-echo "== pose trust: bench_pose (BENCH_POSE_FRAMES rendered frames, default 1000)"
-"${BIN}/bench_pose" --frames "${BENCH_POSE_FRAMES:-1000}" --json "${OUT}/pose.json" | tee "${OUT}/pose.md"
-
-echo
 /usr/bin/python3 "${ARUCOTAG_SRC}/bench/report.py" "${OUT}/detect.json" "${OUT}/nodelet.json" \
   --out-json "${OUT}/results.json" --out-md "${OUT}/results.md" \
   --command "make bench (BENCH_FRAMES=${FRAMES} BENCH_REPS=${REPS} BENCH_THREADS=${BENCH_THREADS:-1})"
@@ -56,3 +52,8 @@ RESULTS_MD="${BENCH_RESULTS_MD-${ARUCOTAG_SRC}/bench/RESULTS.md}"
 if [ -n "${RESULTS_MD}" ]; then cp "${OUT}/results.md" "${RESULTS_MD}"; fi
 echo
 echo "Written: ${OUT}/results.json, ${OUT}/results.md${RESULTS_MD:+, ${RESULTS_MD}}"
+
+# Last, so that the detection table is written even when this is interrupted.
+echo
+echo "== pose trust: bench_pose (BENCH_POSE_FRAMES rendered frames, default 1000)"
+"${BIN}/bench_pose" --frames "${BENCH_POSE_FRAMES:-1000}" --json "${OUT}/pose.json" | tee "${OUT}/pose.md"
