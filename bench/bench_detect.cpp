@@ -1,25 +1,33 @@
-// bench_detect: times and scores, on the same frames in one run,
-//   (a) cv::aruco::detectMarkers with OpenCV's default parameters,
-//   (b) arucotag::Detect with the default DetectorConfig,
-//   (c) the whole per-frame pipeline: PreprocessFrame (from BGR) + Detect + EstimatePoseFromPNP per tag,
-//   (b2) Detect with corner_refinement subpix instead of the default edge fit (the detector alone),
-//   (b3) Detect with the edge fit but no whole-pattern fit (pattern_fit_max_side 0): what the
-//        pattern fit of small markers costs,
-// and writes JSON for bench/report.py (which adds the nodelet's row from bench_nodelet).
+// bench_detect: times and scores detectors on the same frames in one run, each frame going through
+// every detector in turn, and writes JSON for bench/report.py (which adds the nodelet's row from
+// bench_nodelet). The reference is OpenCV's own detector with its defaults; every ratio is a
+// detector's time over that one's.
+//   opencv        cv::aruco::detectMarkers, OpenCV's default parameters (the reference)
+//   opencv_aruco3 the same with useAruco3Detection (OpenCV >= 4.6 only)
+//   apriltag_d1   AprilTag 3 (libapriltag), tag36h11, quad_decimate 1, 1 thread: tag36h11 sets only
+//   apriltag_d2   the same at quad_decimate 2
+//   ours          arucotag::Detect, default DetectorConfig, every frame cold (no tracking state)
+//   ours_fast     Detect without the whole-pattern fit (pattern_fit_max_side 0), cold
+//   ours_video    Detect with the tracking state carried frame to frame: sequences only
+//   ours_subpix   Detect with corner_refinement subpix (the refinement options' accuracy)
+//   pipeline      PreprocessFrame (from BGR) + Detect + EstimatePoseFromPNP per tag, as the nodelet
+//                 runs it (tracked on sequences)
 //
 //   bench_detect --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100]
-//                [--reps 5] [--threads N]
+//                [--reps 5] [--threads N] [--all-cores-reps N]
 //
-// Single-frame sets are timed cold: (b) and (c) forget tracked markers before every frame, as for
-// the first frame of a stream. The sequence runs in order with tracking, restarted each repetition.
-// Methods alternate frame by frame so that load from other processes hits all of them alike.
+// --threads sets OpenCV's threads (bench/run.sh: 1); AprilTag always runs on 1 thread.
+// --all-cores-reps N times the OpenCV-threaded detectors N more passes at all hardware threads.
+// Methods rotate frame by frame so that load from other processes hits all of them alike.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <ctime>
 #include <fstream>
+#include <functional>
 #include <map>
+#include <memory>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -31,6 +39,16 @@
 #include <arucotag/arucotag.hpp>
 
 #include "frames.hpp"
+
+#ifdef ARUCOTAG_BENCH_APRILTAG
+#include <apriltag.h>
+#include <tag36h11.h>
+#endif
+
+// DetectorParameters::useAruco3Detection came with opencv_contrib 4.6.0.
+#if CV_VERSION_MAJOR > 4 || (CV_VERSION_MAJOR == 4 && CV_VERSION_MINOR >= 6)
+#define ARUCOTAG_BENCH_ARUCO3 1
+#endif
 
 namespace arucotag::bench {
 namespace {
@@ -54,17 +72,6 @@ double Percentile(std::vector<double> v, double q) {
   return i + 1 < v.size() ? v[i] * (1 - f) + v[i + 1] * f : v[i];
 }
 
-struct Stats {
-  std::vector<double> wall, cpu;
-  int found = 0, expected = 0, false_positives = 0;
-  std::vector<double> corner_errors;  // px, found markers with known corners
-  void Add(const Score& s) {
-    found += s.found;
-    expected += s.expected;
-    false_positives += s.false_positives;
-  }
-};
-
 struct Detections {
   std::vector<int> ids;
   std::vector<std::array<cv::Point2f, 4>> corners;
@@ -79,7 +86,77 @@ Detections FromTags(const std::vector<ArucoTag>& tags) {
   return d;
 }
 
-// Corner errors of the found markers (truth with corners only), for the accuracy column.
+Detections OpenCvDetect(const cv::Mat& grey, const cv::Ptr<cv::aruco::Dictionary>& dictionary,
+                        const cv::Ptr<cv::aruco::DetectorParameters>& parameters) {
+  Detections d;
+  std::vector<std::vector<cv::Point2f>> corners;
+  cv::aruco::detectMarkers(grey, dictionary, corners, d.ids, parameters);
+  for (const auto& q : corners) d.corners.push_back({q[0], q[1], q[2], q[3]});
+  return d;
+}
+
+#ifdef ARUCOTAG_BENCH_APRILTAG
+// AprilTag 3's detector for tag36h11 with its defaults (2 corrected bits, refine_edges, sharpening
+// 0.25) but for the decimation, on one thread.
+class AprilTag36h11 {
+ public:
+  explicit AprilTag36h11(float quad_decimate) : family_(tag36h11_create()), detector_(apriltag_detector_create()) {
+    apriltag_detector_add_family(detector_, family_);
+    detector_->quad_decimate = quad_decimate;
+    detector_->nthreads = 1;
+  }
+  ~AprilTag36h11() {
+    apriltag_detector_destroy(detector_);
+    tag36h11_destroy(family_);
+  }
+  AprilTag36h11(const AprilTag36h11&) = delete;
+  AprilTag36h11& operator=(const AprilTag36h11&) = delete;
+
+  // AprilTag reads the image without writing it. Its corners run counter-clockwise in the image,
+  // cv::aruco's clockwise from the top left: on a tag36h11 marker as cv::aruco draws it (same id),
+  // p[1] is cv::aruco's top left, p[0] its top right (checked on the renders, where the truth is
+  // exact). AprilTag's pixel centres are at +0.5 (a decimated pixel k maps back to
+  // (k - 0.5) * f + 0.5), OpenCV's at integers: its corners there are the truth + 0.5 px.
+  Detections Detect(const cv::Mat& grey) const {
+    image_u8_t image{grey.cols, grey.rows, static_cast<int32_t>(grey.step), const_cast<uint8_t*>(grey.ptr<uint8_t>())};
+    zarray_t* found = apriltag_detector_detect(detector_, &image);
+    Detections d;
+    for (int i = 0; i < zarray_size(found); ++i) {
+      apriltag_detection_t* det = nullptr;
+      zarray_get(found, i, &det);
+      const auto corner = [&](int k) {
+        return cv::Point2f(static_cast<float>(det->p[k][0] - 0.5), static_cast<float>(det->p[k][1] - 0.5));
+      };
+      d.ids.push_back(det->id);
+      d.corners.push_back({corner(1), corner(0), corner(3), corner(2)});
+    }
+    apriltag_detections_destroy(found);
+    return d;
+  }
+
+ private:
+  apriltag_family_t* family_;
+  apriltag_detector_t* detector_;
+};
+#endif
+
+// One detector under test.
+struct Method {
+  std::string key, label;
+  std::function<Detections(const Frame&)> detect;
+  std::function<void()> reset = [] {};  // forget state carried between frames
+  bool carries_state = false;           // on a sequence: reset once per pass, not before every frame
+  bool opencv_threaded = true;          // timed again in the all-cores passes
+};
+
+struct Stats {
+  std::string label;
+  std::vector<double> wall, cpu, wall_all_cores;
+  int found = 0, expected = 0, false_positives = 0;
+  std::vector<double> corner_errors;  // px, found markers with known corners
+};
+
+// Corner errors of the found markers (truth with corners only), for the accuracy columns.
 void CornerErrors(const Frame& frame, const Detections& d, std::vector<double>& out) {
   for (const Truth& t : frame.truth) {
     if (!t.has_corners) continue;
@@ -94,24 +171,26 @@ void CornerErrors(const Frame& frame, const Detections& d, std::vector<double>& 
 }
 
 struct SetResult {
-  std::string name, size;
+  std::string name, size, dictionary;
   int frames = 0;
-  bool sequence = false;
-  std::map<std::string, Stats> methods;  // "a", "b", "b2", "b3", "c"
-  double max_diff_to_full_px = 0.0;     // (b) against the full search (fast_path off), same ids
+  bool sequence = false, exact_corners = false;
+  std::vector<std::string> order;       // method keys as run
+  std::map<std::string, Stats> methods;
+  double max_diff_to_full_px = 0.0;     // ours against the full search (fast_path off), same ids
   int ids_differing = 0;                // markers one of them reports and the other not
-  unsigned long long full_searches = 0, tracked_frames = 0;
-  int worst_new_marker_delay = -1;      // frames, sequence only
+  unsigned long long full_searches = 0, tracked_frames = 0;  // ours_video
+  int worst_new_marker_delay = -1;      // frames, ours_video on the sequence
+  double mean_new_marker_delay = 0.0;
   double pose_us_total = 0.0;
   long poses = 0;
   std::vector<double> pose_us;  // per tag
-  double edge_us_total = 0.0;  // RefineCornersOnEdges alone, on (b)'s tags
+  double edge_us_total = 0.0;  // RefineCornersOnEdges alone, on ours's tags
   long edges = 0;
-  double pattern_us_total = 0.0;  // RefineCornersOnPattern alone, on (b)'s tags it applies to
+  double pattern_us_total = 0.0;  // RefineCornersOnPattern alone, on ours's tags it applies to
   long patterns = 0;
 };
 
-// The full search (cv::aruco with our configuration) next to (b): ids and corners must agree.
+// The full search (cv::aruco with our configuration) next to ours: ids and corners must agree.
 void CompareToFull(const Frame& frame, const Detections& fast, const Detector& full, SetResult& r) {
   const Detections ref = FromTags(Detect(frame.grey, full));
   std::vector<bool> used(fast.ids.size(), false);
@@ -131,126 +210,193 @@ void CompareToFull(const Frame& frame, const Detections& fast, const Detector& f
   for (bool u : used) r.ids_differing += !u;
 }
 
-SetResult RunSet(const FrameSet& set, int reps) {
-  SetResult r;
-  r.name = set.name;
-  r.frames = static_cast<int>(set.frames.size());
-  r.sequence = set.sequence;
-  r.size = std::to_string(set.frames[0].grey.cols) + "x" + std::to_string(set.frames[0].grey.rows);
+// The edge fit and the pattern fit alone on ours's markers: what they cost per marker.
+void TimeRefinement(const Frame& frame, const Detections& d, const DetectorConfig& config,
+                    const cv::aruco::Dictionary& dictionary, SetResult& r) {
+  if (config.corner_refinement != CornerRefinement::kEdge) return;
+  const int cells = dictionary.markerSize + 2 * config.marker_border_bits;
+  for (size_t t = 0; t < d.corners.size(); ++t) {
+    auto corners = d.corners[t];
+    const double e0 = WallMs();
+    RefineCornersOnEdges(frame.grey, corners, cells);
+    r.edge_us_total += (WallMs() - e0) * 1e3;
+    ++r.edges;
+    double perimeter = 0.0;
+    for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[i] - corners[(i + 1) % 4]);
+    if (perimeter >= 4.0 * config.pattern_fit_max_side) continue;  // (the per-frame cap aside)
+    const cv::Mat black = MarkerCells(dictionary, d.ids[t], config.marker_border_bits);
+    const double p0 = WallMs();
+    RefineCornersOnPattern(frame.grey, black, corners);
+    r.pattern_us_total += (WallMs() - p0) * 1e3;
+    ++r.patterns;
+  }
+}
 
+// Every detector that applies to `set`, the reference first. Detectors live as long as the set runs.
+struct Lineup {
+  std::vector<Method> methods;
+  DetectorConfig config;
+  std::shared_ptr<Detector> full;   // fast_path off: the full search ours is checked against
+  std::shared_ptr<Detector> video;  // ours_video's, for its tracking statistics
+  std::shared_ptr<std::vector<double>> pose_us;  // the pipeline's PnP times (us) in its last call
+};
+
+Lineup MakeLineup(const FrameSet& set) {
+  Lineup l;
   const auto dictionary = cv::aruco::getPredefinedDictionary(DictionaryFromName(set.dictionary));
   const auto opencv_defaults = cv::aruco::DetectorParameters::create();
-  DetectorConfig config;
-  config.dictionary = set.dictionary;
-  config.default_side_length = set.side_length;
-  const Detector detect_b(config), detect_c(config);
-  DetectorConfig subpix_config = config;
-  subpix_config.corner_refinement = CornerRefinement::kSubpix;
-  const Detector detect_b2(subpix_config);
-  DetectorConfig edge_only_config = config;
-  edge_only_config.pattern_fit_max_side = 0;
-  const Detector detect_b3(edge_only_config);
-  DetectorConfig full_config = config;
-  full_config.fast_path = false;
-  const Detector full(full_config);
+  l.methods.push_back({"opencv", "OpenCV detectMarkers, defaults",
+                       [=](const Frame& f) { return OpenCvDetect(f.grey, dictionary, opencv_defaults); }});
+#ifdef ARUCOTAG_BENCH_ARUCO3
+  const auto aruco3 = cv::aruco::DetectorParameters::create();
+  aruco3->useAruco3Detection = true;
+  l.methods.push_back({"opencv_aruco3", "OpenCV detectMarkers, ArUco3 mode",
+                       [=](const Frame& f) { return OpenCvDetect(f.grey, dictionary, aruco3); }});
+#endif
+#ifdef ARUCOTAG_BENCH_APRILTAG
+  if (set.dictionary == "DICT_APRILTAG_36h11") {
+    for (int decimate : {1, 2}) {
+      auto apriltag = std::make_shared<AprilTag36h11>(static_cast<float>(decimate));
+      Method m{"apriltag_d" + std::to_string(decimate),
+               "AprilTag 3 tag36h11, decimate " + std::to_string(decimate) + ", 1 thread",
+               [apriltag](const Frame& f) { return apriltag->Detect(f.grey); }};
+      m.opencv_threaded = false;
+      l.methods.push_back(m);
+    }
+  }
+#endif
+  l.config.dictionary = set.dictionary;
+  l.config.default_side_length = set.side_length;
+  const auto add_ours = [&](const std::string& key, const std::string& label, const DetectorConfig& config,
+                            bool carries_state) {
+    auto detector = std::make_shared<Detector>(config);
+    Method m{key, label, [detector](const Frame& f) { return FromTags(Detect(f.grey, *detector)); },
+             [detector] { detector->ResetTracking(); }, carries_state};
+    l.methods.push_back(m);
+    return detector;
+  };
+  add_ours("ours", "ours, default config", l.config, false);
+  DetectorConfig fast = l.config;
+  fast.pattern_fit_max_side = 0;
+  add_ours("ours_fast", "ours, fast (no pattern fit)", fast, false);
+  if (set.sequence) l.video = add_ours("ours_video", "ours, video mode (tracking)", l.config, true);
+  DetectorConfig subpix = l.config;
+  subpix.corner_refinement = CornerRefinement::kSubpix;
+  add_ours("ours_subpix", "ours, subpix refinement", subpix, false);
 
-  std::map<int, int> first_truth, first_found;  // sequence: id -> frame
+  auto pipeline = std::make_shared<Detector>(l.config);
+  const CameraModel camera = set.camera;
+  l.pose_us = std::make_shared<std::vector<double>>();
+  Method p{"pipeline", "pipeline: preprocess + Detect + PnP",
+           [pipeline, camera, pose_us = l.pose_us](const Frame& f) {
+             pose_us->clear();
+             cv::Mat grey;
+             PreprocessFrame(f.bgr, grey);
+             std::vector<ArucoTag> tags = Detect(grey, *pipeline);
+             for (auto& tag : tags) {
+               const double p0 = WallMs();
+               EstimatePoseFromPNP(camera, tag);
+               pose_us->push_back((WallMs() - p0) * 1e3);
+             }
+             return FromTags(tags);
+           },
+           [pipeline] { pipeline->ResetTracking(); }, true};
+  l.methods.push_back(p);
+
+  DetectorConfig full_config = l.config;
+  full_config.fast_path = false;
+  l.full = std::make_shared<Detector>(full_config);
+  return l;
+}
+
+// `reps` passes over the set, every method on every frame, rotating which goes first. The first
+// pass of the 1-thread run is also the one scored.
+void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r) {
+  std::vector<Method*> methods;
+  for (auto& m : l.methods) {
+    if (!all_cores || m.opencv_threaded) methods.push_back(&m);
+  }
+  std::map<int, int> first_truth, first_found;  // sequence: id -> frame (ours_video)
   for (int rep = 0; rep < reps; ++rep) {
-    const auto reset = [&] {
-      detect_b.ResetTracking();
-      detect_b2.ResetTracking();
-      detect_b3.ResetTracking();
-      detect_c.ResetTracking();
-    };
-    reset();
+    const bool score = !all_cores && rep == 0;
+    for (Method* m : methods) m->reset();
     for (size_t k = 0; k < set.frames.size(); ++k) {
       const Frame& frame = set.frames[k];
-      if (!set.sequence) reset();
-      for (int m = 0; m < 5; ++m) {
-        const int method = static_cast<int>((m + k + rep) % 5);
-        Detections d;
-        double pose_us = 0.0;
-        long poses = 0;
+      for (size_t i = 0; i < methods.size(); ++i) {
+        Method& m = *methods[(i + k + rep) % methods.size()];
+        if (!(set.sequence && m.carries_state)) m.reset();
         const double w0 = WallMs(), c0 = CpuMs();
-        if (method == 0) {
-          std::vector<std::vector<cv::Point2f>> corners;
-          cv::aruco::detectMarkers(frame.grey, dictionary, corners, d.ids, opencv_defaults);
-          for (const auto& q : corners) d.corners.push_back({q[0], q[1], q[2], q[3]});
-        } else if (method == 1) {
-          d = FromTags(Detect(frame.grey, detect_b));
-        } else if (method == 3) {
-          d = FromTags(Detect(frame.grey, detect_b2));
-        } else if (method == 4) {
-          d = FromTags(Detect(frame.grey, detect_b3));
-        } else {
-          cv::Mat grey;
-          PreprocessFrame(frame.bgr, grey);
-          std::vector<ArucoTag> tags = Detect(grey, detect_c);
-          for (auto& tag : tags) {
-            const double p0 = WallMs();
-            EstimatePoseFromPNP(set.camera, tag);
-            const double us = (WallMs() - p0) * 1e3;
-            pose_us += us;
-            ++poses;
-            if (rep == 0) r.pose_us.push_back(us);
-          }
-          d = FromTags(tags);
-        }
+        const Detections d = m.detect(frame);
         const double wall = WallMs() - w0, cpu = CpuMs() - c0;
-        static const char* const kKeys[] = {"a", "b", "c", "b2", "b3"};
-        Stats& s = r.methods[kKeys[method]];
+        Stats& s = r.methods[m.key];
+        if (all_cores) {
+          s.wall_all_cores.push_back(wall);
+          continue;
+        }
         s.wall.push_back(wall);
         s.cpu.push_back(cpu);
-        if (rep != 0) continue;
-        s.Add(ScoreFrame(frame, d.ids, d.corners));
-        CornerErrors(frame, d, s.corner_errors);
-        if (method == 2) {
-          r.pose_us_total += pose_us;
-          r.poses += poses;
+        if (m.key == "pipeline") {
+          for (double us : *l.pose_us) r.pose_us_total += us;
+          r.poses += static_cast<long>(l.pose_us->size());
+          if (score) r.pose_us.insert(r.pose_us.end(), l.pose_us->begin(), l.pose_us->end());
         }
-        if (method == 1) {
-          if (!set.sequence) CompareToFull(frame, d, full, r);
-          if (config.corner_refinement == CornerRefinement::kEdge) {
-            const int cells = full.dictionary()->markerSize + 2 * config.marker_border_bits;
-            for (size_t t = 0; t < d.corners.size(); ++t) {
-              auto corners = d.corners[t];
-              const double e0 = WallMs();
-              RefineCornersOnEdges(frame.grey, corners, cells);
-              r.edge_us_total += (WallMs() - e0) * 1e3;
-              ++r.edges;
-              double perimeter = 0.0;
-              for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[i] - corners[(i + 1) % 4]);
-              if (perimeter >= 4.0 * config.pattern_fit_max_side) continue;  // (the per-frame cap aside)
-              const cv::Mat black = MarkerCells(*full.dictionary(), d.ids[t], config.marker_border_bits);
-              const double p0 = WallMs();
-              RefineCornersOnPattern(frame.grey, black, corners);
-              r.pattern_us_total += (WallMs() - p0) * 1e3;
-              ++r.patterns;
-            }
-          }
+        if (!score) continue;
+        const Score sc = ScoreFrame(frame, d.ids, d.corners);
+        s.found += sc.found;
+        s.expected += sc.expected;
+        s.false_positives += sc.false_positives;
+        CornerErrors(frame, d, s.corner_errors);
+        if (m.key == "ours") {
+          if (!set.sequence) CompareToFull(frame, d, *l.full, r);
+          TimeRefinement(frame, d, l.config, *l.full->dictionary(), r);
+        }
+        if (m.key == "ours_video") {
           for (const Truth& t : frame.truth) {
             first_truth.emplace(t.id, static_cast<int>(k));
-            const Score sc = ScoreFrame(Frame{frame.name, {}, {}, {t}, {}}, d.ids, d.corners);
-            if (sc.found) first_found.emplace(t.id, static_cast<int>(k));
+            const Score one = ScoreFrame(Frame{frame.name, {}, {}, {t}, {}}, d.ids, d.corners);
+            if (one.found) first_found.emplace(t.id, static_cast<int>(k));
           }
         }
       }
     }
-    if (rep == 0) {
-      const auto stats = detect_b.tracking_stats();
+    if (score && l.video) {
+      const auto stats = l.video->tracking_stats();  // this pass's: the detector is fresh
       r.full_searches = stats.full_searches;
       r.tracked_frames = stats.tracked_frames;
     }
   }
-  if (set.sequence) {
-    // Only markers that (a)-style full search can see count: measured against when (b) first found
-    // each marker that was expected at some frame.
+  if (set.sequence && !all_cores && !first_truth.empty()) {
+    // Latency to first detection: frames from a marker's first expected frame to its first find.
     r.worst_new_marker_delay = 0;
+    double total = 0.0;
     for (const auto& [id, frame] : first_truth) {
       const auto it = first_found.find(id);
       const int delay = it == first_found.end() ? 1000 : std::max(0, it->second - frame);
       r.worst_new_marker_delay = std::max(r.worst_new_marker_delay, delay);
+      total += delay;
     }
+    r.mean_new_marker_delay = total / first_truth.size();
+  }
+}
+
+SetResult RunSet(const FrameSet& set, int reps, int all_cores_reps, int threads) {
+  SetResult r;
+  r.name = set.name;
+  r.dictionary = set.dictionary;
+  r.frames = static_cast<int>(set.frames.size());
+  r.sequence = set.sequence;
+  r.exact_corners = set.exact_corners;
+  r.size = std::to_string(set.frames[0].grey.cols) + "x" + std::to_string(set.frames[0].grey.rows);
+  Lineup lineup = MakeLineup(set);
+  for (const auto& m : lineup.methods) {
+    r.order.push_back(m.key);
+    r.methods[m.key].label = m.label;
+  }
+  Pass(set, lineup, reps, false, r);
+  if (all_cores_reps > 0) {
+    cv::setNumThreads(-1);
+    Pass(set, lineup, all_cores_reps, true, r);
+    cv::setNumThreads(threads);
   }
   return r;
 }
@@ -261,46 +407,69 @@ std::string Json(const std::string& s) {
   return out + "\"";
 }
 
+std::string JsonNumber(double x) {
+  if (!std::isfinite(x)) return "null";
+  std::ostringstream s;
+  s.precision(6);
+  s << x;
+  return s.str();
+}
+
+std::string LoadAverage() {
+  std::ifstream in("/proc/loadavg");
+  double one = NAN;
+  in >> one;
+  return JsonNumber(one);
+}
+
 void WriteJson(const std::vector<SetResult>& results, const std::string& path, int reps, int threads,
-               const DetectorConfig& defaults) {
+               int all_cores_reps, const std::string& load_before, const DetectorConfig& defaults) {
   std::vector<double> pose;
   for (const auto& r : results) pose.insert(pose.end(), r.pose_us.begin(), r.pose_us.end());
   double pose_mean = 0.0;
   for (double p : pose) pose_mean += p / std::max<size_t>(1, pose.size());
   std::ofstream out(path);
   out.precision(6);
-  out << "{\n  \"tool\": \"bench_detect\",\n  \"opencv\": " << Json(CV_VERSION) << ",\n  \"threads\": " << threads
+  out << "{\n  \"tool\": \"bench_detect\",\n  \"opencv\": " << Json(CV_VERSION)
+#ifdef ARUCOTAG_BENCH_APRILTAG
+      << ",\n  \"apriltag\": " << Json(ARUCOTAG_BENCH_APRILTAG_VERSION)
+#else
+      << ",\n  \"apriltag\": null"
+#endif
+      << ",\n  \"threads\": " << threads << ",\n  \"all_cores_reps\": " << all_cores_reps
       << ",\n  \"hardware_threads\": " << std::thread::hardware_concurrency() << ",\n  \"reps\": " << reps
+      << ",\n  \"load_average_before\": " << load_before << ",\n  \"load_average_after\": " << LoadAverage()
       << ",\n  \"full_search_interval\": " << defaults.full_search_interval << ",\n  \"pose_us\": {\"count\": " << pose.size()
-      << ", \"median\": " << Percentile(pose, 0.5) << ", \"p90\": " << Percentile(pose, 0.9) << ", \"mean\": " << pose_mean
-      << "},\n  \"sets\": [\n";
-  const std::map<std::string, std::string> labels = {
-      {"a", "(a) cv::aruco::detectMarkers, OpenCV defaults"},
-      {"b", "(b) Detect, default config"},
-      {"b2", "(b2) Detect, subpix refinement"},
-      {"b3", "(b3) Detect, edge fit only (no pattern fit)"},
-      {"c", "(c) preprocess + Detect + PnP"}};
+      << ", \"median\": " << JsonNumber(Percentile(pose, 0.5)) << ", \"p90\": " << JsonNumber(Percentile(pose, 0.9))
+      << ", \"mean\": " << pose_mean << "},\n  \"sets\": [\n";
   for (size_t i = 0; i < results.size(); ++i) {
     const SetResult& r = results[i];
-    out << "    {\"name\": " << Json(r.name) << ", \"size\": " << Json(r.size) << ", \"frames\": " << r.frames
-        << ", \"sequence\": " << (r.sequence ? "true" : "false") << ", \"max_diff_to_full_px\": " << r.max_diff_to_full_px
-        << ", \"ids_differing_from_full\": " << r.ids_differing << ", \"full_searches\": " << r.full_searches
-        << ", \"tracked_frames\": " << r.tracked_frames << ", \"worst_new_marker_delay\": " << r.worst_new_marker_delay
+    out << "    {\"name\": " << Json(r.name) << ", \"size\": " << Json(r.size) << ", \"dictionary\": " << Json(r.dictionary)
+        << ", \"frames\": " << r.frames << ", \"sequence\": " << (r.sequence ? "true" : "false")
+        << ", \"exact_corners\": " << (r.exact_corners ? "true" : "false")
+        << ", \"max_diff_to_full_px\": " << r.max_diff_to_full_px << ", \"ids_differing_from_full\": " << r.ids_differing
+        << ", \"full_searches\": " << r.full_searches << ", \"tracked_frames\": " << r.tracked_frames
+        << ", \"worst_new_marker_delay\": " << r.worst_new_marker_delay
+        << ", \"mean_new_marker_delay\": " << r.mean_new_marker_delay
         << ", \"pose_us_per_tag\": " << (r.poses ? r.pose_us_total / r.poses : 0.0) << ", \"poses\": " << r.poses
         << ", \"edge_fit_us_per_tag\": " << (r.edges ? r.edge_us_total / r.edges : 0.0) << ", \"edge_fits\": " << r.edges
         << ", \"pattern_fit_us_per_tag\": " << (r.patterns ? r.pattern_us_total / r.patterns : 0.0)
-        << ", \"pattern_fits\": " << r.patterns
-        << ",\n     \"methods\": {";
-    int m = 0;
-    for (const auto& [key, s] : r.methods) {
-      out << (m ? ", " : "") << "\n       " << Json(key) << ": {\"label\": " << Json(labels.at(key))
-          << ", \"median_ms\": " << Percentile(s.wall, 0.5) << ", \"p90_ms\": " << Percentile(s.wall, 0.9)
-          << ", \"mean_ms\": " << [&] { double t = 0; for (double w : s.wall) t += w; return t / s.wall.size(); }()
-          << ", \"cpu_median_ms\": " << Percentile(s.cpu, 0.5) << ", \"calls\": " << s.wall.size()
-          << ", \"found\": " << s.found << ", \"expected\": " << s.expected
-          << ", \"false_positives\": " << s.false_positives
-          << ", \"corner_error_p95_px\": " << (s.corner_errors.empty() ? 0.0 : Percentile(s.corner_errors, 0.95)) << "}";
-      ++m;
+        << ", \"pattern_fits\": " << r.patterns << ",\n     \"order\": [";
+    for (size_t k = 0; k < r.order.size(); ++k) out << (k ? ", " : "") << Json(r.order[k]);
+    out << "],\n     \"methods\": {";
+    for (size_t k = 0; k < r.order.size(); ++k) {
+      const Stats& s = r.methods.at(r.order[k]);
+      double mean = 0.0;
+      for (double w : s.wall) mean += w / s.wall.size();
+      out << (k ? ", " : "") << "\n       " << Json(r.order[k]) << ": {\"label\": " << Json(s.label)
+          << ", \"median_ms\": " << JsonNumber(Percentile(s.wall, 0.5)) << ", \"p90_ms\": " << JsonNumber(Percentile(s.wall, 0.9))
+          << ", \"mean_ms\": " << JsonNumber(mean) << ", \"cpu_median_ms\": " << JsonNumber(Percentile(s.cpu, 0.5))
+          << ", \"calls\": " << s.wall.size()
+          << ", \"all_cores_median_ms\": " << JsonNumber(Percentile(s.wall_all_cores, 0.5))
+          << ", \"found\": " << s.found << ", \"expected\": " << s.expected << ", \"false_positives\": " << s.false_positives
+          << ", \"corner_errors\": " << s.corner_errors.size()
+          << ", \"corner_error_median_px\": " << JsonNumber(Percentile(s.corner_errors, 0.5))
+          << ", \"corner_error_p95_px\": " << JsonNumber(Percentile(s.corner_errors, 0.95)) << "}";
     }
     out << "}}" << (i + 1 < results.size() ? "," : "") << "\n";
   }
@@ -309,25 +478,25 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
 
 int Main(int argc, char** argv) {
   const Options options = ParseOptions(argc, argv, "results.json");
-  const std::string& cache = options.cache;
-  const std::string& json = options.json;
-  const int reps = options.reps;
-  const int threads = options.threads;
-  if (threads > 0) cv::setNumThreads(threads);
-  std::fprintf(stderr, "bench_detect: loading frame sets (rendered once into %s)...\n", cache.c_str());
-  std::vector<FrameSet> sets = AllSets(options);
+  const std::string load_before = LoadAverage();
+  if (options.threads > 0) cv::setNumThreads(options.threads);
+  const int threads = cv::getNumThreads();
+  std::fprintf(stderr, "bench_detect: loading frame sets (rendered once into %s)...\n", options.cache.c_str());
+  const std::vector<FrameSet> sets = AllSets(options);
 
   std::vector<SetResult> results;
   for (const auto& set : sets) {
     const double t0 = WallMs();
-    results.push_back(RunSet(set, set.sequence ? std::max(1, reps / 2) : reps));
+    const int reps = set.sequence ? std::max(1, options.reps / 2) : options.reps;
+    const int all_cores_reps = set.sequence ? std::max(1, options.all_cores_reps / 2) : options.all_cores_reps;
+    results.push_back(RunSet(set, reps, options.all_cores_reps > 0 ? all_cores_reps : 0, threads));
     const auto& r = results.back();
-    std::fprintf(stderr, "  %-28s a %7.2f  b %7.2f  c %7.2f ms median  (%.1f s)\n", set.name.c_str(),
-                 Percentile(r.methods.at("a").wall, 0.5), Percentile(r.methods.at("b").wall, 0.5),
-                 Percentile(r.methods.at("c").wall, 0.5), (WallMs() - t0) / 1e3);
+    std::fprintf(stderr, "  %-36s opencv %7.2f  ours %7.2f ms median  (%.1f s)\n", set.name.c_str(),
+                 Percentile(r.methods.at("opencv").wall, 0.5), Percentile(r.methods.at("ours").wall, 0.5),
+                 (WallMs() - t0) / 1e3);
   }
-  WriteJson(results, json, reps, cv::getNumThreads(), DetectorConfig());
-  std::fprintf(stderr, "bench_detect: wrote %s\n", json.c_str());
+  WriteJson(results, options.json, options.reps, threads, options.all_cores_reps, load_before, DetectorConfig());
+  std::fprintf(stderr, "bench_detect: wrote %s\n", options.json.c_str());
   return 0;
 }
 

@@ -1,9 +1,9 @@
-// bench_nodelet: (d) of the benchmark, the detector nodelet end to end inside a nodelet manager.
+// bench_nodelet: the nodelet row of the benchmark, the detector nodelet end to end inside a nodelet manager.
 // Loads arucotag/DetectorNodelet in this process with nodelet::Loader, publishes the benchmark's
 // frames (bgr8 sensor_msgs/Image + camera_info with the same stamp) by shared pointer, so roscpp
 // hands them over without serialising, and times from publish() to the arrival of the tags with
-// that stamp. The same frames also go through (c), the core pipeline the nodelet runs
-// (PreprocessFrame + Detect + EstimatePoseFromPNP), alternating with (d) frame by frame in this
+// that stamp. The same frames also go through the pipeline row, the core pipeline the nodelet runs
+// (PreprocessFrame + Detect + EstimatePoseFromPNP), alternating with the nodelet frame by frame in this
 // process, so the nodelet's overhead is measured under the same load. Writes JSON rows for
 // bench/report.py. Needs a ROS master (bench/run.sh starts one).
 //
@@ -96,7 +96,7 @@ sensor_msgs::CameraInfoPtr Info(const CameraModel& camera, const cv::Size& size)
 
 struct Row {
   std::string name;
-  std::vector<double> wall, cpu, core_wall;  // (d), and (c) side by side
+  std::vector<double> wall, cpu, core_wall;  // the nodelet, and the pipeline side by side
   int found = 0, expected = 0, false_positives = 0, lost = 0;
 };
 
@@ -175,7 +175,7 @@ int Main(int argc, char** argv) {
   // Raw only: the bench times the raw path (auto would also subscribe <image>/compressed).
   ros::param::set(detector + "/image_transport", std::string("raw"));
   ros::param::set(detector + "/queue_size", 5);
-  // The core's default refinement, whatever the nodelet would pick without a yaml: (c) and (d) must
+  // The core's default refinement, whatever the nodelet would pick without a yaml: pipeline and nodelet must
   // run the same pipeline.
   const char* refinement[] = {"none", "subpix", "contour", "apriltag", "edge"};
   ros::param::set(detector + "/corner_refinement",
@@ -227,7 +227,7 @@ int Main(int argc, char** argv) {
       images.push_back(cv_bridge::CvImage(header, "bgr8", f.bgr).toImageMsg());
       infos.push_back(Info(set.camera, f.bgr.size()));
     }
-    // (c) as the nodelet runs it: one Detector for the whole stream, as configured there.
+    // The pipeline as the nodelet runs it: one Detector for the whole stream, as configured there.
     DetectorConfig config;
     config.dictionary = set.dictionary;
     config.default_side_length = set.side_length;
@@ -279,7 +279,7 @@ int Main(int argc, char** argv) {
         }
       }
     }
-    std::fprintf(stderr, "  %-28s d %7.2f ms median, (c) alongside %7.2f ms (%zu frames timed, %d lost)\n",
+    std::fprintf(stderr, "  %-28s nodelet %7.2f ms median, pipeline alongside %7.2f ms (%zu frames timed, %d lost)\n",
                  set.name.c_str(), Percentile(row.wall, 0.5), Percentile(row.core_wall, 0.5), row.wall.size(), row.lost);
     rows.push_back(row);
   }
@@ -311,7 +311,7 @@ int Main(int argc, char** argv) {
     const Row& r = rows[i];
     double mean = 0.0;
     for (double w : r.wall) mean += w / std::max<size_t>(1, r.wall.size());
-    out << "    {\"name\": \"" << r.name << "\", \"method\": {\"label\": \"(d) nodelet in a manager, publish to tags\", "
+    out << "    {\"name\": \"" << r.name << "\", \"method\": {\"label\": \"nodelet in a manager, publish to tags (own run)\", "
         << "\"median_ms\": " << Percentile(r.wall, 0.5) << ", \"p90_ms\": " << Percentile(r.wall, 0.9)
         << ", \"mean_ms\": " << mean << ", \"cpu_median_ms\": " << Percentile(r.cpu, 0.5) << ", \"calls\": " << r.wall.size()
         << ", \"lost\": " << r.lost << ", \"found\": " << r.found << ", \"expected\": " << r.expected

@@ -23,7 +23,7 @@ namespace fs = std::filesystem;
 namespace {
 
 // Bump when the scene recipe changes so stale caches are rendered again.
-constexpr const char* kCacheVersion = "frames-v3";
+constexpr const char* kCacheVersion = "frames-v4";
 constexpr double kHfovDeg = 65.0;
 constexpr double kDeg = CV_PI / 180.0;
 
@@ -83,31 +83,46 @@ bool Inside(const cv::Rect2f& box, cv::Size size, float margin) {
          box.y + box.height <= size.height - margin;
 }
 
-// Scene with `count` markers of DICT_4X4_50 (ids 0..49, each at most once), sides log-uniform between
-// a small marker near the detection limit and one that still lets `count` of them fit, tilted up to
-// 50 degrees, never overlapping (so every one is detectable in principle), on textured clutter.
-Frame RenderClutter(cv::Size size, int count, unsigned seed, const std::string& name) {
+// What a scattered scene holds: which markers, how large or how far, how degraded.
+struct ScatterRecipe {
+  int dictionary = cv::aruco::DICT_4X4_50;
+  int id_count = 50;  ///< ids drawn without repeat from 0..id_count-1
+  int count = 1;
+  double min_px = 18.0;  ///< side range (px) when no range is set: log-uniform from here to what lets `count` fit
+  double min_range_m = 0.0, max_range_m = 0.0;  ///< when max_range_m > 0: depth uniform in it instead
+  double max_tilt_deg = 50.0;
+  double noise_sigma = 2.0, blur_sigma = 0.5;
+};
+
+// Scene with `recipe.count` 0.15 m markers (each id at most once), sides log-uniform between a small
+// marker near the detection limit and one that still lets `count` of them fit (or depths uniform in
+// the recipe's range), tilted up to max_tilt_deg, never overlapping (so every one is detectable in
+// principle), on textured clutter.
+Frame RenderScattered(cv::Size size, const ScatterRecipe& recipe, unsigned seed, const std::string& name) {
   const sim::Camera camera = sim::MakeCamera(size, kHfovDeg);
   const double fx = camera.K(0, 0);
+  const int count = recipe.count;
   cv::RNG rng(seed * 7919u + count * 104729u + size.width);
   const double side_m = 0.15;
-  const double min_px = 18.0;
+  const double min_px = recipe.min_px;
   const double max_px = std::max(min_px * 1.5, std::min(0.35 * size.height, std::sqrt(double(size.area()) / count) / 1.7));
+  const bool by_range = recipe.max_range_m > 0.0;
 
   std::vector<sim::Marker> markers;
   std::vector<cv::Rect2f> boxes;
-  std::vector<int> ids(50);
-  for (int i = 0; i < 50; ++i) ids[i] = i;
-  for (int i = 49; i > 0; --i) std::swap(ids[i], ids[rng.uniform(0, i + 1)]);
+  std::vector<int> ids(recipe.id_count);
+  for (int i = 0; i < recipe.id_count; ++i) ids[i] = i;
+  for (int i = recipe.id_count - 1; i > 0; --i) std::swap(ids[i], ids[rng.uniform(0, i + 1)]);
   for (int k = 0; k < count; ++k) {
-    double side_px = std::exp(rng.uniform(std::log(min_px), std::log(max_px)));
+    double side_px = by_range ? fx * side_m / rng.uniform(recipe.min_range_m, recipe.max_range_m)
+                              : std::exp(rng.uniform(std::log(min_px), std::log(max_px)));
     bool placed = false;
     for (int attempt = 0; attempt < 400 && !placed; ++attempt) {
-      if (attempt % 100 == 99) side_px = std::max(min_px, side_px * 0.8);
+      if (!by_range && attempt % 100 == 99) side_px = std::max(min_px, side_px * 0.8);
       const double range = fx * side_m / side_px;
       const double u = rng.uniform(0.0, double(size.width)), v = rng.uniform(0.0, double(size.height));
       const cv::Vec3d ray = camera.K.inv() * cv::Vec3d(u, v, 1.0);
-      const double axis = rng.uniform(0.0, 360.0), tilt = rng.uniform(0.0, 50.0);
+      const double axis = rng.uniform(0.0, 360.0), tilt = rng.uniform(0.0, recipe.max_tilt_deg);
       sim::Marker m = sim::FacingCamera(ids[k], side_m, ray * range, tilt * std::cos(axis * kDeg),
                                         tilt * std::sin(axis * kDeg), rng.uniform(0.0, 360.0));
       const cv::Rect2f box = GrownBox(sim::ProjectCorners(camera, m), 1.6f);
@@ -119,9 +134,10 @@ Frame RenderClutter(cv::Size size, int count, unsigned seed, const std::string& 
     }
   }
   sim::RenderOptions options;
+  options.dictionary = recipe.dictionary;
   options.seed = seed;
-  options.noise_sigma = 2.0;
-  options.blur_sigma = 0.5;
+  options.noise_sigma = recipe.noise_sigma;
+  options.blur_sigma = recipe.blur_sigma;
   options.brightness = 0.85 + 0.3 * rng.uniform(0.0, 1.0);
   Frame frame = MakeFrame(name, sim::RenderScene(camera, markers, options));
   for (const auto& m : markers) frame.truth.push_back(WithCorners(m.id, sim::ProjectCorners(camera, m)));
@@ -158,6 +174,7 @@ FrameSet RenderSequence(int frames, std::vector<std::pair<int, int>>* appear_fra
   set.dictionary = "DICT_4X4_50";
   set.camera = ToModel(camera);
   set.sequence = true;
+  set.exact_corners = true;
   std::map<int, int> first_seen;
   for (int k = 0; k < frames; ++k) {
     const double t = frames > 1 ? double(k) / (frames - 1) : 0.0;
@@ -301,29 +318,63 @@ bool ReadSet(FrameSet& set, const fs::path& dir, int frames) {
 
 }  // namespace
 
+namespace {
+
+// A scattered set: read from `cache_dir`/`dir` when there, else rendered and written there.
+FrameSet ScatteredSet(const std::string& cache_dir, const std::string& dir, const std::string& name,
+                      const std::string& dictionary, cv::Size size, const ScatterRecipe& recipe, int frames) {
+  FrameSet set;
+  set.name = name;
+  set.dictionary = dictionary;
+  set.camera = ToModel(sim::MakeCamera(size, kHfovDeg));
+  set.exact_corners = true;
+  const fs::path path = fs::path(cache_dir) / (dir + "_" + std::to_string(frames));
+  if (!ReadSet(set, path, frames)) {
+    set.frames.clear();
+    for (int i = 0; i < frames; ++i) {
+      set.frames.push_back(RenderScattered(size, recipe, 1000u + i, set.name + "/" + std::to_string(i)));
+    }
+    WriteSet(set, path);
+  }
+  return set;
+}
+
+}  // namespace
+
 std::vector<FrameSet> SyntheticSets(const std::string& cache_dir, int frames, int sequence_frames) {
   std::vector<FrameSet> sets;
   const std::vector<cv::Size> sizes = {{640, 480}, {1280, 720}, {1920, 1080}};
   for (const cv::Size& size : sizes) {
     for (int count : {1, 5, 20, 50}) {
-      FrameSet set;
       std::ostringstream name;
       name << "synthetic " << size.width << "x" << size.height << ", " << count << (count == 1 ? " tag" : " tags");
-      set.name = name.str();
-      set.dictionary = "DICT_4X4_50";
-      set.camera = ToModel(sim::MakeCamera(size, kHfovDeg));
-      const fs::path dir = fs::path(cache_dir) / (std::to_string(size.width) + "x" + std::to_string(size.height) +
-                                                   "_" + std::to_string(count) + "_" + std::to_string(frames));
-      if (!ReadSet(set, dir, frames)) {
-        set.frames.clear();
-        for (int i = 0; i < frames; ++i) {
-          set.frames.push_back(RenderClutter(size, count, 1000u + i, set.name + "/" + std::to_string(i)));
-        }
-        WriteSet(set, dir);
-      }
-      sets.push_back(std::move(set));
+      ScatterRecipe recipe;
+      recipe.count = count;
+      sets.push_back(ScatteredSet(cache_dir, std::to_string(size.width) + "x" + std::to_string(size.height) + "_" +
+                                                 std::to_string(count),
+                                  name.str(), "DICT_4X4_50", size, recipe, frames));
     }
   }
+  // tag36h11, which AprilTag reads too: 8x8 black cells (6x6 code) against 6x6 for DICT_4X4_50, so
+  // the smallest, 14 px, have 1.75 px cells.
+  ScatterRecipe tag36h11;
+  tag36h11.dictionary = cv::aruco::DICT_APRILTAG_36h11;
+  tag36h11.id_count = 587;
+  tag36h11.count = 12;
+  tag36h11.min_px = 14.0;
+  sets.push_back(ScatteredSet(cache_dir, "1280x720_tag36h11_12", "tag36h11 1280x720, 12 tags", "DICT_APRILTAG_36h11",
+                              {1280, 720}, tag36h11, frames));
+  // Small and distant, as a rover sees a post before it is close: 0.15 m at 2-14 m is 75 to 11 px.
+  ScatterRecipe distant = tag36h11;
+  distant.count = 10;
+  distant.min_range_m = 2.0;
+  distant.max_range_m = 14.0;
+  distant.max_tilt_deg = 40.0;
+  distant.noise_sigma = 3.0;
+  distant.blur_sigma = 0.8;
+  sets.push_back(ScatteredSet(cache_dir, "1280x720_tag36h11_distant_10", "tag36h11 distant 1280x720, 10 tags",
+                              "DICT_APRILTAG_36h11", {1280, 720}, distant, frames));
+
   const fs::path dir = fs::path(cache_dir) / ("sequence_" + std::to_string(sequence_frames));
   FrameSet sequence;
   sequence.name = "sequence 1280x720";
@@ -335,9 +386,94 @@ std::vector<FrameSet> SyntheticSets(const std::string& cache_dir, int frames, in
     sequence.dictionary = meta.dictionary;
     sequence.camera = meta.camera;
     sequence.sequence = true;
+    sequence.exact_corners = true;
   }
   sets.push_back(std::move(sequence));
   return sets;
+}
+
+FrameSet WarpedRealSet(const FrameSet& sources, const std::vector<cv::Mat>& backgrounds, int frames) {
+  const cv::Size size(1280, 720);
+  FrameSet set;
+  set.name = "real warped 1280x720";
+  set.dictionary = sources.dictionary;
+  set.side_length = sources.side_length;
+  set.camera = ToModel(sim::MakeCamera(size, kHfovDeg));  // nominal: each warp is its own camera
+  for (int i = 0; i < frames; ++i) {
+    cv::RNG rng(4242u + 31u * i);
+    // The background photo scaled to cover the frame, centre crop.
+    const cv::Mat& background = backgrounds[i % backgrounds.size()];
+    const double cover = std::max(double(size.width) / background.cols, double(size.height) / background.rows);
+    cv::Mat scaled;
+    cv::resize(background, scaled, cv::Size(), cover, cover, cv::INTER_LINEAR);
+    cv::Mat canvas;
+    scaled(cv::Rect((scaled.cols - size.width) / 2, (scaled.rows - size.height) / 2, size.width, size.height))
+        .convertTo(canvas, CV_32FC3);
+    Frame frame;
+    std::vector<cv::Rect2f> boxes;
+    for (const Frame& source : sources.frames) {
+      // The region pasted: the markers' bounding box and half a side of the photo around it.
+      std::vector<cv::Point2f> points;
+      double side = 0.0;
+      for (const Truth& t : source.truth) {
+        for (int c = 0; c < 4; ++c) {
+          points.push_back(t.corners[c]);
+          side += cv::norm(t.corners[c] - t.corners[(c + 1) % 4]) / (4.0 * source.truth.size());
+        }
+      }
+      const cv::Rect region = (cv::boundingRect(points) + cv::Size(int(side), int(side)) - cv::Point(int(side / 2), int(side / 2))) &
+                              cv::Rect(0, 0, source.bgr.cols, source.bgr.rows);
+      const std::vector<cv::Point2f> from = {{0, 0}, {float(region.width), 0}, {float(region.width), float(region.height)},
+                                             {0, float(region.height)}};
+      for (int attempt = 0; attempt < 200; ++attempt) {
+        // Marker sides log-uniform in 16-160 px, any in-plane rotation, corners moved by up to 12% of
+        // the region for perspective.
+        const double scale = std::exp(rng.uniform(std::log(16.0), std::log(160.0))) / side;
+        const double angle = rng.uniform(0.0, 2 * CV_PI);
+        const cv::Point2f centre(float(rng.uniform(0.0, double(size.width))), float(rng.uniform(0.0, double(size.height))));
+        const float jitter = float(0.12 * scale * std::min(region.width, region.height));
+        std::vector<cv::Point2f> to;
+        for (const auto& p : from) {
+          const cv::Point2f d = (p - cv::Point2f(region.width / 2.f, region.height / 2.f)) * float(scale);
+          to.push_back(centre + cv::Point2f(float(d.x * std::cos(angle) - d.y * std::sin(angle)),
+                                            float(d.x * std::sin(angle) + d.y * std::cos(angle))) +
+                       cv::Point2f(float(rng.uniform(-jitter, jitter)), float(rng.uniform(-jitter, jitter))));
+        }
+        const cv::Rect2f box = cv::boundingRect(to);
+        if (!Inside(box, size, 2.0f)) continue;
+        if (std::any_of(boxes.begin(), boxes.end(), [&](const cv::Rect2f& b) { return (b & box).area() > 0; })) continue;
+        boxes.push_back(box);
+        const cv::Mat h = cv::getPerspectiveTransform(from, to);
+        // Low-pass before shrinking so the warp does not alias the cells.
+        cv::Mat patch = source.bgr(region).clone();
+        if (scale < 0.8) cv::GaussianBlur(patch, patch, cv::Size(), 0.45 / scale);
+        cv::Mat warped, alpha;
+        cv::warpPerspective(patch, warped, h, size, cv::INTER_LINEAR, cv::BORDER_CONSTANT);
+        cv::warpPerspective(cv::Mat(patch.size(), CV_32FC1, cv::Scalar(1.0)), alpha, h, size, cv::INTER_LINEAR,
+                            cv::BORDER_CONSTANT, cv::Scalar(0.0));
+        warped.convertTo(warped, CV_32FC3, rng.uniform(0.7, 1.15));
+        cv::Mat alpha3;
+        cv::merge(std::vector<cv::Mat>(3, alpha), alpha3);
+        canvas = canvas.mul(cv::Scalar::all(1.0) - alpha3) + warped.mul(alpha3);
+        for (const Truth& t : source.truth) {
+          std::vector<cv::Point2f> corners(t.corners.begin(), t.corners.end()), moved;
+          for (auto& c : corners) c -= cv::Point2f(region.tl());
+          cv::perspectiveTransform(corners, moved, h);
+          frame.truth.push_back(WithCorners(t.id, {moved[0], moved[1], moved[2], moved[3]}));
+        }
+        break;
+      }
+    }
+    cv::GaussianBlur(canvas, canvas, cv::Size(), rng.uniform(0.3, 1.2));
+    cv::Mat noise(size, CV_32FC3);
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, rng.uniform(1.0, 4.0));
+    cv::Mat bgr;
+    cv::Mat(canvas + noise).convertTo(bgr, CV_8UC3);
+    Frame made = MakeFrame(set.name + "/" + std::to_string(i), bgr);
+    made.truth = std::move(frame.truth);
+    set.frames.push_back(std::move(made));
+  }
+  return set;
 }
 
 Score ScoreFrame(const Frame& frame, const std::vector<int>& ids,
@@ -387,6 +523,7 @@ Options ParseOptions(int argc, char** argv, const std::string& default_json) {
     else if (arg == "--sequence-frames") options.sequence_frames = std::stoi(next());
     else if (arg == "--reps") options.reps = std::stoi(next());
     else if (arg == "--threads") options.threads = std::stoi(next());
+    else if (arg == "--all-cores-reps") options.all_cores_reps = std::stoi(next());
     else throw Error("unknown option " + arg);
   }
   return options;
@@ -394,6 +531,10 @@ Options ParseOptions(int argc, char** argv, const std::string& default_json) {
 
 std::vector<FrameSet> AllSets(const Options& options) {
   std::vector<FrameSet> sets = RealSets(options.data);
+  // The Raspberry Pi photos (corners known) onto the tutorial photos (another dictionary).
+  std::vector<cv::Mat> backgrounds;
+  for (const Frame& f : sets[0].frames) backgrounds.push_back(f.bgr);
+  sets.push_back(WarpedRealSet(sets[1], backgrounds, options.frames));
   for (auto& s : SyntheticSets(options.cache, options.frames, options.sequence_frames)) sets.push_back(std::move(s));
   return sets;
 }

@@ -1,7 +1,8 @@
-// Frame sets of the detection benchmark: the real photos with their published answers, rendered
-// cluttered scenes at three resolutions and four tag counts, and a rendered sequence of a camera
-// driving past markers. Rendered sets are written once to a cache folder and read back afterwards,
-// so every benchmark run times exactly the same pixels.
+// Frame sets of the detection benchmark: the real photos with their published answers, the same
+// photos warped and composited onto other photos, rendered cluttered scenes at three resolutions and
+// four tag counts, two rendered tag36h11 sets (AprilTag runs on them too) and a rendered sequence of a
+// camera driving past markers. Rendered sets are written once to a cache folder and read back
+// afterwards, so every benchmark run times exactly the same pixels.
 #pragma once
 
 #include <array>
@@ -37,6 +38,9 @@ struct FrameSet {
   double side_length = 0.15;  ///< m, for the pose step
   CameraModel camera;
   bool sequence = false;  ///< frames are consecutive: run them in order, carrying tracking state
+  /// Truth corners are exact (rendered): corner errors measure accuracy. False for the photos,
+  /// whose corners are the publishers' own detections, hand labels, or those warped.
+  bool exact_corners = false;
   std::vector<Frame> frames;
 };
 
@@ -49,21 +53,32 @@ struct Options {
   int sequence_frames = 100;                          ///< --sequence-frames
   int reps = 5;                                       ///< --reps: timed passes
   int threads = -1;                                   ///< --threads: OpenCV threads (-1: OpenCV's choice)
+  int all_cores_reps = 0;  ///< --all-cores-reps: extra passes at all cores for the OpenCV-threaded methods
 };
 
 /// Parses the options above; throws arucotag::Error on an unknown option or a missing value.
 Options ParseOptions(int argc, char** argv, const std::string& default_json);
 
-/// The real photos followed by every synthetic set, as both benchmark programs time them.
+/// The real photos, the warped real photos, then every synthetic set, as both benchmark programs
+/// time them.
 std::vector<FrameSet> AllSets(const Options& options);
 
 /// Loads the five real photos of test/data (two sets: 640x480 tutorial photos, 1280x960 Raspberry
 /// Pi photos). Throws arucotag::Error when a file is missing.
 std::vector<FrameSet> RealSets(const std::string& data_dir);
 
-/// Rendered sets: {640x480, 1280x720, 1920x1080} x {1, 5, 20, 50} tags, `frames` scenes each, plus
-/// the tracked sequence (`sequence_frames` frames at 1280x720). Read from `cache_dir` when present
-/// and written there otherwise.
+/// Frames the renderer did not make: the Raspberry Pi photos of `sources` (markers with known corners)
+/// warped by random homographies (scale, rotation, perspective), relit and composited onto the
+/// `backgrounds` photos, blurred and noised, at 1280x720; `frames` of them, the same every run.
+/// Truth is the sources' published corners through each homography; the backgrounds' own markers
+/// (another dictionary) are not expected, so a detector reporting one scores a false positive.
+FrameSet WarpedRealSet(const FrameSet& sources, const std::vector<cv::Mat>& backgrounds, int frames);
+
+/// Rendered sets: {640x480, 1280x720, 1920x1080} x {1, 5, 20, 50} tags of DICT_4X4_50; tag36h11
+/// (DICT_APRILTAG_36h11) at 1280x720, 12 tags of 14 px and more; small distant tag36h11 (0.15 m at
+/// 2-14 m, 1280x720, more noise and blur); `frames` scenes each; then the tracked sequence
+/// (`sequence_frames` frames at 1280x720). Read from `cache_dir` when present and written there
+/// otherwise.
 std::vector<FrameSet> SyntheticSets(const std::string& cache_dir, int frames, int sequence_frames);
 
 /// The tracked sequence alone, rendered in memory (unit tests use it; the benchmark caches it).

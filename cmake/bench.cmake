@@ -1,10 +1,22 @@
 # Detection benchmark, `make bench` (bench/run.sh): frame sets rendered once into the build folder,
-# (a)-(c) timed by bench_detect (core only), (d) by bench_nodelet (the nodelet in a manager).
+# OpenCV, its ArUco3 mode, AprilTag 3 and ours timed by bench_detect (core only), the nodelet by
+# bench_nodelet (in a manager).
 add_library(arucotag_bench_frames STATIC bench/frames.cpp)
 target_link_libraries(arucotag_bench_frames PUBLIC arucotag_sim arucotag_core)
 
 add_executable(bench_detect bench/bench_detect.cpp)
 target_link_libraries(bench_detect arucotag_bench_frames)
+# AprilTag 3 as a peer on the tag36h11 sets (Debian libapriltag-dev, or ROS's apriltag package);
+# without it the benchmark builds and runs the other detectors.
+find_package(apriltag QUIET)
+if(TARGET apriltag::apriltag)
+  target_link_libraries(bench_detect apriltag::apriltag)
+  target_compile_definitions(bench_detect PRIVATE ARUCOTAG_BENCH_APRILTAG
+                             ARUCOTAG_BENCH_APRILTAG_VERSION="${apriltag_VERSION}")
+  message(STATUS "bench_detect: AprilTag ${apriltag_VERSION} found, timed on the tag36h11 sets")
+else()
+  message(STATUS "bench_detect: AprilTag not found (apt-get install libapriltag-dev), left out of the benchmark")
+endif()
 
 # Pose trust: flips, rotation error, NEES and time per tag for PnP, cloud and fused.
 add_executable(bench_pose bench/bench_pose.cpp)

@@ -13,6 +13,7 @@ PACKAGES=(
   ros-sensor-msgs ros-geometry-msgs ros-visualization-msgs ros-std-msgs
   libdiagnostic-updater-dev libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
   libgtest-dev googletest libbenchmark-dev
+  libapriltag-dev
   rviz xvfb xauth x11-apps imagemagick
 )
 
