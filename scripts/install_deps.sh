@@ -13,6 +13,7 @@ PACKAGES=(
   ros-sensor-msgs ros-geometry-msgs ros-visualization-msgs ros-std-msgs
   libdiagnostic-updater-dev libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
   libgtest-dev googletest libbenchmark-dev
+  clang libclang-rt-14-dev  # make fuzz: libFuzzer and the sanitizer runtimes
   rviz xvfb xauth x11-apps imagemagick
 )
 
