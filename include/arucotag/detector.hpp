@@ -33,8 +33,8 @@ struct DetectorConfig {
 
   // cv::aruco::DetectorParameters, same meaning and defaults as OpenCV 4.6.
   int adaptive_thresh_win_size_min = 3;
-  int adaptive_thresh_win_size_max = 23;
-  int adaptive_thresh_win_size_step = 10;
+  int adaptive_thresh_win_size_max = 23;   ///< at most 1001 px
+  int adaptive_thresh_win_size_step = 10;  ///< at most 200 windows from min to max
   double adaptive_thresh_constant = 7.0;
   double min_marker_perimeter_rate = 0.03;
   double max_marker_perimeter_rate = 4.0;
@@ -43,6 +43,7 @@ struct DetectorConfig {
   int min_distance_to_border = 3;
   double min_marker_distance_rate = 0.05;
   int marker_border_bits = 1;
+  /// (marker bits + 2 * marker_border_bits) * this is at most 1440 px
   int perspective_remove_pixel_per_cell = 4;
   double perspective_remove_ignored_margin_per_cell = 0.13;
   double max_erroneous_bits_in_border_rate = 0.35;

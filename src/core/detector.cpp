@@ -27,6 +27,14 @@ const std::vector<std::string> kDictionaryNames = {
     "DICT_APRILTAG_36h11",
 };
 
+// Bounds on the adaptive threshold windows: several times what dynamic_reconfigure allows (199 px,
+// 197 windows), so only configs that would stall detection are refused.
+constexpr int kMaxThresholdWindow = 1001;
+constexpr int kMaxThresholdWindows = 200;
+// Bound on the side of a candidate unwarped for decoding (px): 8 times what dynamic_reconfigure
+// allows with a 7x7 dictionary and one border bit.
+constexpr long long kMaxUnwarpedSide = 1440;
+
 void Require(bool ok, const char* field, const std::string& why) {
   if (!ok) {
     throw Error(std::string("detector parameter '") + field + "' " + why);
@@ -40,6 +48,14 @@ void Validate(const DetectorConfig& c) {
   Require(c.adaptive_thresh_win_size_max >= c.adaptive_thresh_win_size_min, "adaptive_thresh_win_size_max",
           "must be >= adaptive_thresh_win_size_min");
   Require(c.adaptive_thresh_win_size_step > 0, "adaptive_thresh_win_size_step", "must be > 0");
+  // Every window thresholds the whole frame, at a cost that grows with the window's size: without
+  // a bound a config could hang Detect (fuzz_config found 2575 windows of up to 26000 px taking
+  // minutes on a 160x120 frame) or overflow the window loop.
+  Require(c.adaptive_thresh_win_size_max <= kMaxThresholdWindow, "adaptive_thresh_win_size_max",
+          "must be <= " + std::to_string(kMaxThresholdWindow) + " px");
+  const int windows = (c.adaptive_thresh_win_size_max - c.adaptive_thresh_win_size_min) / c.adaptive_thresh_win_size_step + 1;
+  Require(windows <= kMaxThresholdWindows, "adaptive_thresh_win_size_step",
+          "leaves more than " + std::to_string(kMaxThresholdWindows) + " threshold windows between min and max");
   Require(Finite(c.adaptive_thresh_constant), "adaptive_thresh_constant", "must be finite");
   Require(Finite(c.min_marker_perimeter_rate) && c.min_marker_perimeter_rate > 0.0, "min_marker_perimeter_rate",
           "must be > 0");
@@ -136,6 +152,13 @@ int DictionaryFromName(const std::string& name) {
 Detector::Detector(const DetectorConfig& config) : config_(config), tracking_(std::make_unique<Tracking>()) {
   Validate(config_);
   dictionary_ = cv::aruco::getPredefinedDictionary(DictionaryFromName(config_.dictionary));
+  // cv::aruco unwarps every candidate into a square this many pixels a side before reading its
+  // bits (fuzz_config: 328 cells of 98 px asked for 1 GB per candidate).
+  const long long unwarped_side =
+      (dictionary_->markerSize + 2LL * config_.marker_border_bits) * config_.perspective_remove_pixel_per_cell;
+  Require(unwarped_side <= kMaxUnwarpedSide, "perspective_remove_pixel_per_cell",
+          "times the marker's cells (" + config_.dictionary + " with marker_border_bits) must be <= " +
+              std::to_string(kMaxUnwarpedSide) + " px");
   parameters_ = cv::aruco::DetectorParameters::create();
   auto& p = *parameters_;
   p.adaptiveThreshWinSizeMin = config_.adaptive_thresh_win_size_min;
