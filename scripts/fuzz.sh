@@ -57,8 +57,11 @@ for name in ${FUZZ_HARNESSES}; do
   rm -rf "${artifacts}"
   mkdir -p "${seeds}" "${work}" "${artifacts}"
   echo "fuzz: ${name} for ${FUZZ_SECONDS} s (log ${log})"
-  "${exe}" -max_total_time="${FUZZ_SECONDS}" -rss_limit_mb=512 -timeout=1 -max_len="${FUZZ_MAX_LEN}" \
-    -print_final_stats=1 -artifact_prefix="${artifacts}/" "${work}" "${seeds}" > "${log}" 2>&1
+  # -fork=1: one child process at a time does the fuzzing, so a finding is saved and counted and the
+  # run goes on for its whole time instead of stopping at the first one.
+  "${exe}" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -max_total_time="${FUZZ_SECONDS}" \
+    -rss_limit_mb=512 -timeout=1 -max_len="${FUZZ_MAX_LEN}" -artifact_prefix="${artifacts}/" \
+    "${work}" "${seeds}" > "${log}" 2>&1
   status=$?
   if [ "${FUZZ_MERGE:-0}" = 1 ]; then
     merged="${FUZZ_BUILD}/merged/${name}"
@@ -66,23 +69,22 @@ for name in ${FUZZ_HARNESSES}; do
     "${exe}" -merge=1 -rss_limit_mb=512 -timeout=1 -max_len="${FUZZ_MAX_LEN}" "${merged}" "${seeds}" "${work}" \
       >> "${log}" 2>&1 && find "${seeds}" -type f ! -name 'regress_*' -delete && cp "${merged}"/* "${seeds}/"
   fi
-  runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "${log}" | tail -1 | grep -o '[0-9]*$')
-  [ -n "${runs}" ] || runs=$(grep -o '^#[0-9]*' "${log}" | tail -1 | tr -d '#')
-  cov=$(grep -o 'cov: [0-9]* ft: [0-9]*' "${log}" | tail -1)
-  rss=$(grep -o 'stat::peak_rss_mb: *[0-9]*' "${log}" | tail -1 | grep -o '[0-9]*$')
-  count() { find "${artifacts}" -name "$1-*" | wc -l; }
-  crashes=$(( $(count crash) + $(count leak) + $(count deadly_signal) ))
-  slow=$(( $(count timeout) + $(count slow-unit) ))
-  oom=$(count oom)
-  # libFuzzer exits non-zero for any finding; one it could not save an input for counts as a crash.
+  # The fork mode's status lines: "#<runs>: cov: <edges> ft: <features> corp: ... oom/timeout/crash: a/b/c ...".
+  last=$(grep -E '^#[0-9]+: cov:' "${log}" | tail -1)
+  runs=$(sed -E 's/^#([0-9]+):.*/\1/' <<< "${last}")
+  cov=$(grep -oE 'cov: [0-9]+ ft: [0-9]+' <<< "${last}")
+  read -r oom slow crashes < <(grep -oE 'oom/timeout/crash: [0-9]+/[0-9]+/[0-9]+' <<< "${last}" | grep -oE '[0-9]+/[0-9]+/[0-9]+' | tr / ' ')
+  crashes=${crashes:-0} slow=${slow:-0} oom=${oom:-0}
+  # A finding the status line has not counted yet is still in the artifacts (leaks count as crashes).
+  saved=$(find "${artifacts}" -type f | wc -l)
+  if [ "${saved}" -gt $((crashes + slow + oom)) ]; then crashes=$((saved - slow - oom)); fi
   if [ "${status}" -ne 0 ] && [ $((crashes + slow + oom)) -eq 0 ]; then crashes=1; fi
   findings=$((findings + crashes + slow + oom))
-  summary+=("$(printf '%-7s runs %10s  %-18s  peak %4s MB  crashes %d  slow %d  oom %d' \
-    "${name}" "${runs:-0}" "${cov:-cov: ?}" "${rss:-?}" "${crashes}" "${slow}" "${oom}")")
-  if [ "${status}" -ne 0 ]; then
-    grep -m1 -A30 -E '^==[0-9]+==ERROR|runtime error|ALARM|out-of-memory|deadly signal|uncaught exception' "${log}"
-    ls "${artifacts}"
-  fi
+  summary+=("$(printf '%-7s runs %10s  %-18s  crashes %d  slow %d  oom %d' \
+    "${name}" "${runs:-0}" "${cov:-cov: ?}" "${crashes}" "${slow}" "${oom}")")
+  for artifact in "${artifacts}"/*; do
+    [ -e "${artifact}" ] && echo "fuzz: ${name} finding ${artifact}"
+  done
 done
 echo "fuzz: ${FUZZ_SECONDS} s per harness (-rss_limit_mb=512 -timeout=1)"
 printf '%s\n' "${summary[@]}"

@@ -1,6 +1,6 @@
 // libFuzzer harness: the core on arbitrary frames. The first bytes choose the frame's size and
 // OpenCV type, the preprocessing and detector options; the rest are its pixels (repeated to fill
-// the frame). PreprocessFrame, Detect (again when it found markers: tracking) and
+// the frame). PreprocessFrame, Detect (again on the tracking path when it found markers) and
 // DrawDetections must return or throw arucotag::Error, nothing else.
 #include <cstddef>
 #include <cstdint>
@@ -84,7 +84,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   try {
     const arucotag::Detector detector(config);
     std::vector<arucotag::ArucoTag> tags = arucotag::Detect(grey, detector);
-    if (!tags.empty()) tags = arucotag::Detect(grey, detector);  // the tracking path
+    if (config.fast_path && config.tracking && !tags.empty()) tags = arucotag::Detect(grey, detector);
     tags.insert(tags.end(), extra.begin(), extra.end());
     cv::Mat overlay = grey.clone();
     arucotag::DrawDetections(overlay, tags);
