@@ -75,9 +75,12 @@ for name in ${FUZZ_HARNESSES}; do
   cov=$(grep -oE 'cov: [0-9]+ ft: [0-9]+' <<< "${last}")
   read -r oom slow crashes < <(grep -oE 'oom/timeout/crash: [0-9]+/[0-9]+/[0-9]+' <<< "${last}" | grep -oE '[0-9]+/[0-9]+/[0-9]+' | tr / ' ')
   crashes=${crashes:-0} slow=${slow:-0} oom=${oom:-0}
-  # A finding the status line has not counted yet is still in the artifacts (leaks count as crashes).
-  saved=$(find "${artifacts}" -type f | wc -l)
-  if [ "${saved}" -gt $((crashes + slow + oom)) ]; then crashes=$((saved - slow - oom)); fi
+  # A finding the last status line has not counted yet is still in the artifacts (leaks are crashes).
+  count() { find "${artifacts}" -type f \( "$@" \) | wc -l; }
+  max() { echo $(($1 > $2 ? $1 : $2)); }
+  crashes=$(max "${crashes}" "$(count -name 'crash-*' -o -name 'leak-*' -o -name 'deadly*')")
+  slow=$(max "${slow}" "$(count -name 'timeout-*' -o -name 'slow-unit-*')")
+  oom=$(max "${oom}" "$(count -name 'oom-*')")
   if [ "${status}" -ne 0 ] && [ $((crashes + slow + oom)) -eq 0 ]; then crashes=1; fi
   findings=$((findings + crashes + slow + oom))
   summary+=("$(printf '%-7s runs %10s  %-18s  crashes %d  slow %d  oom %d' \

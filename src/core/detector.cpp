@@ -56,7 +56,9 @@ void Validate(const DetectorConfig& c) {
   const int windows = (c.adaptive_thresh_win_size_max - c.adaptive_thresh_win_size_min) / c.adaptive_thresh_win_size_step + 1;
   Require(windows <= kMaxThresholdWindows, "adaptive_thresh_win_size_step",
           "leaves more than " + std::to_string(kMaxThresholdWindows) + " threshold windows between min and max");
-  Require(Finite(c.adaptive_thresh_constant), "adaptive_thresh_constant", "must be finite");
+  // Grey levels; past +-255 it thresholds every pixel alike (and the fast path's cvFloor overflows).
+  Require(Finite(c.adaptive_thresh_constant) && std::abs(c.adaptive_thresh_constant) <= 255.0,
+          "adaptive_thresh_constant", "must be -255 to 255");
   Require(Finite(c.min_marker_perimeter_rate) && c.min_marker_perimeter_rate > 0.0, "min_marker_perimeter_rate",
           "must be > 0");
   Require(Finite(c.max_marker_perimeter_rate) && c.max_marker_perimeter_rate > c.min_marker_perimeter_rate,
@@ -253,70 +255,77 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     throw Error("Detect: want an 8-bit grey or BGR image (got " + std::to_string(frame.channels()) +
                 " channel(s) of OpenCV depth " + std::to_string(frame.depth()) + "); run PreprocessFrame first");
   }
-  cv::Mat grey = frame;
-  if (frame.channels() == 3) {
-    cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
-  }
-  std::vector<ArucoTag> tags;
-  const auto add = [&](int id, const cv::Point2f* corners) {
-    if (!detector.Accepts(id)) return;
-    ArucoTag tag;
-    tag.id = id;
-    std::copy_n(corners, 4, tag.corners.begin());
-    tag.side_length = detector.SideLength(tag.id);
-    tags.push_back(tag);
-  };
-  // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
-  // go to cv::aruco, which returns nothing for them.
-  constexpr int kMinFastPathSide = 32;
-  if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
-    // A moved-from Detector has no tracking state: it still detects, frame by frame.
-    for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
-                                                  *detector.parameters(), detector.tracking_.get())) {
-      add(found.id, found.corners.data());
+  // A configuration OpenCV cannot use on this frame (a corner window wider than the frame, an
+  // approximation accuracy past the contour's size; fuzz_config) is refused with cv::Exception.
+  try {
+    cv::Mat grey = frame;
+    if (frame.channels() == 3) {
+      cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
     }
-  } else {
-    std::vector<std::vector<cv::Point2f>> corners;
-    std::vector<int> ids;
-    // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
-    // copy so concurrent calls on one Detector never race.
-    const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
-    std::vector<std::vector<cv::Point2f>> rejected;
-    cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
-    for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
-    // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
-    // too, so both paths report the same ids.
-    for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
-                                                       *detector.parameters())) {
-      add(marker.id, marker.corners.data());
-    }
-  }
-  const DetectorConfig& config = detector.config();
-  if (config.corner_refinement == CornerRefinement::kEdge) {
-    // Tags are independent: refine them on all cores (tens of microseconds each).
-    const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
-    cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
-      for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
-    });
-    // The small markers, smallest first, up to pattern_fit_max_markers of them.
-    std::vector<std::pair<float, size_t>> small;
-    for (size_t i = 0; i < tags.size(); ++i) {
-      const float side = internal::MeanSide(tags[i].corners);
-      if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
-    }
-    std::sort(small.begin(), small.end());
-    if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
-      small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
-    }
-    cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
-      for (int k = range.start; k < range.end; ++k) {
-        ArucoTag& tag = tags[small[k].second];
-        RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
-                               tag.corners);
+    std::vector<ArucoTag> tags;
+    const auto add = [&](int id, const cv::Point2f* corners) {
+      if (!detector.Accepts(id)) return;
+      ArucoTag tag;
+      tag.id = id;
+      std::copy_n(corners, 4, tag.corners.begin());
+      tag.side_length = detector.SideLength(tag.id);
+      tags.push_back(tag);
+    };
+    // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
+    // go to cv::aruco, which returns nothing for them.
+    constexpr int kMinFastPathSide = 32;
+    if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
+      // A moved-from Detector has no tracking state: it still detects, frame by frame.
+      for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
+                                                    *detector.parameters(), detector.tracking_.get())) {
+        add(found.id, found.corners.data());
       }
-    });
+    } else {
+      std::vector<std::vector<cv::Point2f>> corners;
+      std::vector<int> ids;
+      // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
+      // copy so concurrent calls on one Detector never race.
+      const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
+      std::vector<std::vector<cv::Point2f>> rejected;
+      cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
+      for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
+      // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
+      // too, so both paths report the same ids.
+      for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
+                                                         *detector.parameters())) {
+        add(marker.id, marker.corners.data());
+      }
+    }
+    const DetectorConfig& config = detector.config();
+    if (config.corner_refinement == CornerRefinement::kEdge) {
+      // Tags are independent: refine them on all cores (tens of microseconds each).
+      const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
+      cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
+        for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+      });
+      // The small markers, smallest first, up to pattern_fit_max_markers of them.
+      std::vector<std::pair<float, size_t>> small;
+      for (size_t i = 0; i < tags.size(); ++i) {
+        const float side = internal::MeanSide(tags[i].corners);
+        if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
+      }
+      std::sort(small.begin(), small.end());
+      if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
+        small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
+      }
+      cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
+        for (int k = range.start; k < range.end; ++k) {
+          ArucoTag& tag = tags[small[k].second];
+          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
+                                 tag.corners);
+        }
+      });
+    }
+    return tags;
+  } catch (const cv::Exception& e) {
+    throw Error(std::string("Detect: OpenCV cannot run this configuration on a ") + std::to_string(frame.cols) + "x" +
+                std::to_string(frame.rows) + " frame: " + e.what());
   }
-  return tags;
 }
 
 }  // namespace arucotag

@@ -186,6 +186,34 @@ TEST(BadInput, DetectorConfigsThatWouldStallDetectionAreRefused) {
   EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
 }
 
+// Found by fuzz_config (regress_clahe_tile_grid_huge, regress_unsharp_sigma_huge,
+// regress_subpix_window_wider_than_frame, regress_approx_accuracy_out_of_range,
+// regress_thresh_constant_huge): options OpenCV answered with a huge allocation or cv::Exception.
+TEST(BadInput, OptionsOpenCvRefusesAreErrors) {
+  const cv::Mat frame(40, 40, CV_8UC1, cv::Scalar(200));
+  cv::Mat out;
+  PreprocessOptions preprocess;
+  preprocess.equalize = true;
+  preprocess.clahe_tile_grid = 1 << 30;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(frame, out, preprocess); }).find("clahe_tile_grid"), std::string::npos);
+  preprocess = {};
+  preprocess.unsharp_amount = 1.0;
+  preprocess.unsharp_sigma = 1e300;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(frame, out, preprocess); }).find("unsharp_sigma"), std::string::npos);
+  DetectorConfig config;
+  config.fast_path = false;
+  config.corner_refinement = CornerRefinement::kSubpix;
+  config.corner_refinement_win_size = 30;  // cornerSubPix wants a frame of 2 * 30 + 5 px
+  cv::Mat marker;
+  cv::aruco::drawMarker(cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50), 1, 30, marker);
+  cv::Mat small(40, 40, CV_8UC1, cv::Scalar(255));
+  marker.copyTo(small(cv::Rect(5, 5, 30, 30)));
+  EXPECT_NE(ErrorOf([&] { Detect(small, Detector(config)); }).find("OpenCV cannot run"), std::string::npos);
+  config = {};
+  config.adaptive_thresh_constant = -3.5e250;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("adaptive_thresh_constant"), std::string::npos);
+}
+
 // Found by fuzz_core (regress_draw_nan_corner): a NaN corner rounded to INT_MIN and overflowed.
 TEST(BadInput, NonFiniteOrFarCornersToDrawDetections) {
   cv::Mat image(48, 64, CV_8UC3, cv::Scalar::all(128));
