@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 export ARUCOTAG_BUILD ?= $(CURDIR)/build
 
-.PHONY: deps build test sanitize demo bench soak workspace-test clean
+.PHONY: deps build test sanitize fuzz demo bench soak workspace-test clean
 
 deps:
 	bash scripts/install_deps.sh
@@ -17,6 +17,11 @@ test: build
 # report is a failed test (scripts/sanitize.sh).
 sanitize: deps
 	bash scripts/sanitize.sh
+
+# libFuzzer harnesses (test/fuzz), built with clang, ASan and UBSan into $(ARUCOTAG_BUILD)-fuzz,
+# FUZZ_SECONDS (600) each; fails on any crash, sanitizer report, input over 1 s or 512 MB.
+fuzz: deps
+	bash scripts/fuzz.sh
 
 demo: build
 	bash scripts/demo.sh

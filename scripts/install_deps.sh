@@ -14,6 +14,7 @@ PACKAGES=(
   libdiagnostic-updater-dev libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
   libgtest-dev googletest libbenchmark-dev
   libapriltag-dev
+  clang libclang-rt-14-dev  # make fuzz: libFuzzer and the sanitizer runtimes
   rviz xvfb xauth x11-apps imagemagick
 )
 

@@ -33,9 +33,9 @@ struct DetectorConfig {
 
   // cv::aruco::DetectorParameters, same meaning and defaults as OpenCV 4.6.
   int adaptive_thresh_win_size_min = 3;
-  int adaptive_thresh_win_size_max = 23;
-  int adaptive_thresh_win_size_step = 10;
-  double adaptive_thresh_constant = 7.0;
+  int adaptive_thresh_win_size_max = 23;   ///< at most 1001 px
+  int adaptive_thresh_win_size_step = 10;  ///< at most 200 windows from min to max
+  double adaptive_thresh_constant = 7.0;  ///< grey levels, -255 to 255
   double min_marker_perimeter_rate = 0.03;
   double max_marker_perimeter_rate = 4.0;
   double polygonal_approx_accuracy_rate = 0.03;
@@ -43,6 +43,7 @@ struct DetectorConfig {
   int min_distance_to_border = 3;
   double min_marker_distance_rate = 0.05;
   int marker_border_bits = 1;
+  /// (marker bits + 2 * marker_border_bits) * this is at most 1440 px
   int perspective_remove_pixel_per_cell = 4;
   double perspective_remove_ignored_margin_per_cell = 0.13;
   double max_erroneous_bits_in_border_rate = 0.35;
@@ -153,8 +154,9 @@ class Detector {
 
 /// Finds the markers in an 8-bit frame (grey, as PreprocessFrame makes it, or 3-channel BGR, which
 /// is converted). Returns one ArucoTag per marker that passes the id lists, with id, corners and side
-/// length set and no pose. Throws arucotag::Error on an empty frame or one that is not 8-bit with
-/// 1 or 3 channels. With config().fast_path and tracking (the defaults) it uses and updates the
+/// length set and no pose. Throws arucotag::Error on an empty frame, one that is not 8-bit with
+/// 1 or 3 channels, or one OpenCV cannot search with this configuration (a corner refinement window
+/// wider than the frame, say). With config().fast_path and tracking (the defaults) it uses and updates the
 /// Detector's tracked markers (see DetectorConfig::tracking); safe to call from several threads.
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector);
 

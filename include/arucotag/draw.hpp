@@ -34,7 +34,7 @@ struct LabelPlacement {
 /// never overlap each other while the image has room for all of them, stay inside it whenever a
 /// label fits in it, and cover a tag only where no free spot exists. Text size and padding grow with the image
 /// (readable from 320x240 to 4K, never smaller than a legible minimum). Deterministic.
-/// Throws arucotag::Error on an empty size.
+/// Throws arucotag::Error on an empty size or a corner that is not finite or over 2^20 px off.
 std::vector<LabelPlacement> LayoutLabels(cv::Size image_size, const std::vector<ArucoTag>& tags);
 
 /// Draws each tag onto `image` in place: its outline, a filled square on corner 0 (top-left in the
@@ -43,7 +43,7 @@ std::vector<LabelPlacement> LayoutLabels(cv::Size image_size, const std::vector<
 /// leader line to the tag when the label was moved. Colour images get a green outline, a red
 /// corner-0 square and cyan text; grey images get white outlines and text and a black square.
 /// Works on 8-bit 1- or 3-channel images. Throws arucotag::Error on an empty image or any other
-/// channel count or depth.
+/// channel count or depth, and on a corner that is not finite or over 2^20 px off (drawing nothing).
 void DrawDetections(cv::Mat& image, const std::vector<ArucoTag>& tags);
 
 }  // namespace arucotag

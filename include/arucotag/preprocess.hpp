@@ -18,10 +18,10 @@ struct PreprocessOptions {
   /// Contrast-limited adaptive histogram equalisation: lifts markers in shade or glare.
   bool equalize = false;
   double clahe_clip_limit = 2.0;  ///< CLAHE contrast limit
-  int clahe_tile_grid = 8;        ///< CLAHE tiles per image side
+  int clahe_tile_grid = 8;        ///< CLAHE tiles per image side, 1 to 256
   /// Unsharp mask: out = in + amount * (in - gaussian(in, sigma)). 0 disables.
   double unsharp_amount = 0.0;
-  double unsharp_sigma = 1.5;  ///< px
+  double unsharp_sigma = 1.5;  ///< px, at most 100
 };
 
 /// Converts any supported frame to the 8-bit single-channel image the detector wants, then applies

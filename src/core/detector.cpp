@@ -27,6 +27,14 @@ const std::vector<std::string> kDictionaryNames = {
     "DICT_APRILTAG_36h11",
 };
 
+// Bounds on the adaptive threshold windows: several times what dynamic_reconfigure allows (199 px,
+// 197 windows), so only configs that would stall detection are refused.
+constexpr int kMaxThresholdWindow = 1001;
+constexpr int kMaxThresholdWindows = 200;
+// Bound on the side of a candidate unwarped for decoding (px): 8 times what dynamic_reconfigure
+// allows with a 7x7 dictionary and one border bit.
+constexpr long long kMaxUnwarpedSide = 1440;
+
 void Require(bool ok, const char* field, const std::string& why) {
   if (!ok) {
     throw Error(std::string("detector parameter '") + field + "' " + why);
@@ -40,7 +48,17 @@ void Validate(const DetectorConfig& c) {
   Require(c.adaptive_thresh_win_size_max >= c.adaptive_thresh_win_size_min, "adaptive_thresh_win_size_max",
           "must be >= adaptive_thresh_win_size_min");
   Require(c.adaptive_thresh_win_size_step > 0, "adaptive_thresh_win_size_step", "must be > 0");
-  Require(Finite(c.adaptive_thresh_constant), "adaptive_thresh_constant", "must be finite");
+  // Every window thresholds the whole frame, at a cost that grows with the window's size: without
+  // a bound a config could hang Detect (fuzz_config found 2575 windows of up to 26000 px taking
+  // minutes on a 160x120 frame) or overflow the window loop.
+  Require(c.adaptive_thresh_win_size_max <= kMaxThresholdWindow, "adaptive_thresh_win_size_max",
+          "must be <= " + std::to_string(kMaxThresholdWindow) + " px");
+  const int windows = (c.adaptive_thresh_win_size_max - c.adaptive_thresh_win_size_min) / c.adaptive_thresh_win_size_step + 1;
+  Require(windows <= kMaxThresholdWindows, "adaptive_thresh_win_size_step",
+          "leaves more than " + std::to_string(kMaxThresholdWindows) + " threshold windows between min and max");
+  // Grey levels; past +-255 it thresholds every pixel alike (and the fast path's cvFloor overflows).
+  Require(Finite(c.adaptive_thresh_constant) && std::abs(c.adaptive_thresh_constant) <= 255.0,
+          "adaptive_thresh_constant", "must be -255 to 255");
   Require(Finite(c.min_marker_perimeter_rate) && c.min_marker_perimeter_rate > 0.0, "min_marker_perimeter_rate",
           "must be > 0");
   Require(Finite(c.max_marker_perimeter_rate) && c.max_marker_perimeter_rate > c.min_marker_perimeter_rate,
@@ -136,6 +154,13 @@ int DictionaryFromName(const std::string& name) {
 Detector::Detector(const DetectorConfig& config) : config_(config), tracking_(std::make_unique<Tracking>()) {
   Validate(config_);
   dictionary_ = cv::aruco::getPredefinedDictionary(DictionaryFromName(config_.dictionary));
+  // cv::aruco unwarps every candidate into a square this many pixels a side before reading its
+  // bits (fuzz_config: 328 cells of 98 px asked for 1 GB per candidate).
+  const long long unwarped_side =
+      (dictionary_->markerSize + 2LL * config_.marker_border_bits) * config_.perspective_remove_pixel_per_cell;
+  Require(unwarped_side <= kMaxUnwarpedSide, "perspective_remove_pixel_per_cell",
+          "times the marker's cells (" + config_.dictionary + " with marker_border_bits) must be <= " +
+              std::to_string(kMaxUnwarpedSide) + " px");
   parameters_ = cv::aruco::DetectorParameters::create();
   auto& p = *parameters_;
   p.adaptiveThreshWinSizeMin = config_.adaptive_thresh_win_size_min;
@@ -230,70 +255,77 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     throw Error("Detect: want an 8-bit grey or BGR image (got " + std::to_string(frame.channels()) +
                 " channel(s) of OpenCV depth " + std::to_string(frame.depth()) + "); run PreprocessFrame first");
   }
-  cv::Mat grey = frame;
-  if (frame.channels() == 3) {
-    cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
-  }
-  std::vector<ArucoTag> tags;
-  const auto add = [&](int id, const cv::Point2f* corners) {
-    if (!detector.Accepts(id)) return;
-    ArucoTag tag;
-    tag.id = id;
-    std::copy_n(corners, 4, tag.corners.begin());
-    tag.side_length = detector.SideLength(tag.id);
-    tags.push_back(tag);
-  };
-  // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
-  // go to cv::aruco, which returns nothing for them.
-  constexpr int kMinFastPathSide = 32;
-  if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
-    // A moved-from Detector has no tracking state: it still detects, frame by frame.
-    for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
-                                                  *detector.parameters(), detector.tracking_.get())) {
-      add(found.id, found.corners.data());
+  // A configuration OpenCV cannot use on this frame (a corner window wider than the frame, an
+  // approximation accuracy past the contour's size; fuzz_config) is refused with cv::Exception.
+  try {
+    cv::Mat grey = frame;
+    if (frame.channels() == 3) {
+      cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
     }
-  } else {
-    std::vector<std::vector<cv::Point2f>> corners;
-    std::vector<int> ids;
-    // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
-    // copy so concurrent calls on one Detector never race.
-    const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
-    std::vector<std::vector<cv::Point2f>> rejected;
-    cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
-    for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
-    // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
-    // too, so both paths report the same ids.
-    for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
-                                                       *detector.parameters())) {
-      add(marker.id, marker.corners.data());
-    }
-  }
-  const DetectorConfig& config = detector.config();
-  if (config.corner_refinement == CornerRefinement::kEdge) {
-    // Tags are independent: refine them on all cores (tens of microseconds each).
-    const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
-    cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
-      for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
-    });
-    // The small markers, smallest first, up to pattern_fit_max_markers of them.
-    std::vector<std::pair<float, size_t>> small;
-    for (size_t i = 0; i < tags.size(); ++i) {
-      const float side = internal::MeanSide(tags[i].corners);
-      if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
-    }
-    std::sort(small.begin(), small.end());
-    if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
-      small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
-    }
-    cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
-      for (int k = range.start; k < range.end; ++k) {
-        ArucoTag& tag = tags[small[k].second];
-        RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
-                               tag.corners);
+    std::vector<ArucoTag> tags;
+    const auto add = [&](int id, const cv::Point2f* corners) {
+      if (!detector.Accepts(id)) return;
+      ArucoTag tag;
+      tag.id = id;
+      std::copy_n(corners, 4, tag.corners.begin());
+      tag.side_length = detector.SideLength(tag.id);
+      tags.push_back(tag);
+    };
+    // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
+    // go to cv::aruco, which returns nothing for them.
+    constexpr int kMinFastPathSide = 32;
+    if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
+      // A moved-from Detector has no tracking state: it still detects, frame by frame.
+      for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
+                                                    *detector.parameters(), detector.tracking_.get())) {
+        add(found.id, found.corners.data());
       }
-    });
+    } else {
+      std::vector<std::vector<cv::Point2f>> corners;
+      std::vector<int> ids;
+      // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
+      // copy so concurrent calls on one Detector never race.
+      const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
+      std::vector<std::vector<cv::Point2f>> rejected;
+      cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
+      for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
+      // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
+      // too, so both paths report the same ids.
+      for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
+                                                         *detector.parameters())) {
+        add(marker.id, marker.corners.data());
+      }
+    }
+    const DetectorConfig& config = detector.config();
+    if (config.corner_refinement == CornerRefinement::kEdge) {
+      // Tags are independent: refine them on all cores (tens of microseconds each).
+      const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
+      cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
+        for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+      });
+      // The small markers, smallest first, up to pattern_fit_max_markers of them.
+      std::vector<std::pair<float, size_t>> small;
+      for (size_t i = 0; i < tags.size(); ++i) {
+        const float side = internal::MeanSide(tags[i].corners);
+        if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
+      }
+      std::sort(small.begin(), small.end());
+      if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
+        small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
+      }
+      cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
+        for (int k = range.start; k < range.end; ++k) {
+          ArucoTag& tag = tags[small[k].second];
+          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
+                                 tag.corners);
+        }
+      });
+    }
+    return tags;
+  } catch (const cv::Exception& e) {
+    throw Error(std::string("Detect: OpenCV cannot run this configuration on a ") + std::to_string(frame.cols) + "x" +
+                std::to_string(frame.rows) + " frame: " + e.what());
   }
-  return tags;
 }
 
 }  // namespace arucotag

@@ -326,12 +326,29 @@ class Layout {
   bool full_ = false;
 };
 
+// Corners past this (px, either axis) belong to no image. Refusing them keeps every coordinate the
+// layout and OpenCV's drawing derive from them within int range (fuzz_core: a NaN corner rounded to
+// INT_MIN overflowed the corner square's `quad[0] - half`).
+constexpr float kMaxCorner = 1 << 20;
+
+void CheckCorners(const std::vector<ArucoTag>& tags, const char* who) {
+  for (const auto& tag : tags) {
+    for (const auto& c : tag.corners) {
+      if (!(std::abs(c.x) <= kMaxCorner && std::abs(c.y) <= kMaxCorner)) {
+        throw Error(std::string(who) + ": tag " + std::to_string(tag.id) + " has a corner at (" + std::to_string(c.x) +
+                    ", " + std::to_string(c.y) + "), not finite or over 2^20 px from the image");
+      }
+    }
+  }
+}
+
 }  // namespace
 
 std::vector<LabelPlacement> LayoutLabels(cv::Size image_size, const std::vector<ArucoTag>& tags) {
   if (image_size.width <= 0 || image_size.height <= 0) {
     throw Error("LayoutLabels: empty image size");
   }
+  CheckCorners(tags, "LayoutLabels");
   const Style style = StyleFor(image_size);
   // Top to bottom, then left to right: the labels that default to the free space above the scene
   // go first, and the result does not depend on the detector's output order.
@@ -382,6 +399,7 @@ void DrawDetections(cv::Mat& image, const std::vector<ArucoTag>& tags) {
                 std::to_string(image.channels()) + " channel(s) of OpenCV depth " +
                 std::to_string(image.depth()) + ")");
   }
+  CheckCorners(tags, "DrawDetections");
   const bool grey = image.channels() == 1;
   const cv::Scalar outline = grey ? cv::Scalar(255) : cv::Scalar(0, 255, 0);
   const cv::Scalar first_corner = grey ? cv::Scalar(0) : cv::Scalar(0, 0, 255);

@@ -582,7 +582,8 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
     for (size_t i = 0; i < samples.size(); i += step) samples[kept++] = samples[i];
     samples.resize(kept);
   }
-  if (static_cast<int>(samples.size()) < options.min_points) {
+  // Not one point, whatever min_points says: the medians below need one (fuzz_pose, min_points 0).
+  if (samples.empty() || static_cast<int>(samples.size()) < options.min_points) {
     // The old cloud result is gone: keep the pose consistent with what is still measured.
     ResolvePose(tag, tag.pnp.valid ? PoseSource::kPnp : PoseSource::kNone);
     return false;

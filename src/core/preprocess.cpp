@@ -21,6 +21,9 @@ PixelFormat PixelFormatFromEncoding(const std::string& encoding) {
 
 namespace {
 
+constexpr int kMaxTileGrid = 256;
+constexpr double kMaxUnsharpSigma = 100.0;
+
 PixelFormat ResolveFormat(const cv::Mat& in, PixelFormat format) {
   const int channels = in.channels();
   const int depth = in.depth();
@@ -81,16 +84,19 @@ void PreprocessFrame(const cv::Mat& in, cv::Mat& out, const PreprocessOptions& o
       grey = in.clone();
       break;
   }
+  // Bounds fuzz_config found: OpenCV allocates tile_grid^2 tiles (a grid of 10^9 asked for exabytes) and
+  // refuses a Gaussian kernel of a huge sigma with cv::Exception.
   if (options.equalize) {
-    if (!(options.clahe_clip_limit > 0.0) || options.clahe_tile_grid < 1) {
-      throw Error("PreprocessFrame: clahe_clip_limit must be > 0 and clahe_tile_grid >= 1");
+    if (!(options.clahe_clip_limit > 0.0) || options.clahe_tile_grid < 1 || options.clahe_tile_grid > kMaxTileGrid) {
+      throw Error("PreprocessFrame: clahe_clip_limit must be > 0 and clahe_tile_grid 1 to " +
+                  std::to_string(kMaxTileGrid));
     }
     cv::createCLAHE(options.clahe_clip_limit, cv::Size(options.clahe_tile_grid, options.clahe_tile_grid))
         ->apply(grey, grey);
   }
   if (options.unsharp_amount > 0.0) {
-    if (!(options.unsharp_sigma > 0.0)) {
-      throw Error("PreprocessFrame: unsharp_sigma must be > 0");
+    if (!(options.unsharp_sigma > 0.0 && options.unsharp_sigma <= kMaxUnsharpSigma)) {
+      throw Error("PreprocessFrame: unsharp_sigma must be > 0 and at most " + std::to_string(kMaxUnsharpSigma) + " px");
     }
     cv::Mat blurred;
     cv::GaussianBlur(grey, blurred, cv::Size(), options.unsharp_sigma);

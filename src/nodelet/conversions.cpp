@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <limits>
 
@@ -30,7 +31,7 @@ geometry_msgs::Point ToPoint(const cv::Point2f& p) {
   return point;
 }
 
-std::string Size(int width, int height) { return std::to_string(width) + "x" + std::to_string(height); }
+std::string Size(long long width, long long height) { return std::to_string(width) + "x" + std::to_string(height); }
 
 // A pose covariance moved into a frame rotated by q: position and the rotation angles (about fixed
 // axes) both turn with the frame, so C' = B C B^T with B = diag(R, R). The translation adds nothing.
@@ -117,6 +118,20 @@ CameraModel CameraModelFromInfo(const image_geometry::PinholeCameraModel& geomet
   namespace models = sensor_msgs::distortion_models;
   if (!geometry.initialized()) throw Error("no camera_info received yet");
   const sensor_msgs::CameraInfo& info = geometry.cameraInfo();
+  // image_geometry hands sizes, binning and ROI over as int: a message's uint32 values past this
+  // wrap negative or overflow the products below (fuzz_ros: a 2^31 ROI). 32768 px a side is over
+  // twice the largest sensors; the checks that follow need sizes to fit an int's area.
+  constexpr std::uint32_t kMaxSide = 1u << 15;
+  const auto& r = info.roi;
+  for (const std::uint32_t value : {info.width, info.height, info.binning_x, info.binning_y, r.x_offset,
+                                    r.y_offset, r.width, r.height}) {
+    if (value > kMaxSide) {
+      throw Error("camera_info size, binning or roi above " + std::to_string(kMaxSide) + " px (" +
+                  Size(info.width, info.height) + " sensor, roi " + std::to_string(r.x_offset) + "," +
+                  std::to_string(r.y_offset) + " " + Size(r.width, r.height) + ", binning " +
+                  Size(info.binning_x, info.binning_y) + ")");
+    }
+  }
   // image_geometry reads binning 0 as 1 and an all-zero ROI as the whole sensor. K, D and P stay
   // full-resolution; the pixel mapping places this image's pixels on the sensor.
   const int binning_x = static_cast<int>(geometry.binningX()), binning_y = static_cast<int>(geometry.binningY());

@@ -147,5 +147,84 @@ TEST(BadInput, TagPartlyOutsideTheCloudIsClipped) {
   EXPECT_NEAR(tag.cloud.centre[2], 2.0, 1e-6);
 }
 
+// Found by fuzz_pose (test/fuzz/corpus/pose/regress_cloud_min_points_0): with min_points 0 and
+// no finite point the fallback took the median of nothing.
+TEST(BadInput, NoCloudPointsIsNoPoseWhateverMinPoints) {
+  ArucoTag tag;
+  tag.corners = {{{10, 10}, {30, 10}, {30, 30}, {10, 30}}};
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const cv::Mat cloud(48, 64, CV_32FC3, cv::Scalar(nan, nan, nan));
+  CloudPoseOptions options;
+  options.min_points = 0;
+  options.min_plane_points = 0;
+  EXPECT_FALSE(EstimatePoseFromPointCloud(cloud, cloud.size(), tag, options));
+  EXPECT_FALSE(tag.cloud.valid);
+  EXPECT_EQ(tag.pose_source, PoseSource::kNone);
+}
+
+// Found by fuzz_config (regress_threshold_windows_2575, regress_unwarped_side_32144): configs the
+// validation let through that made one 160x120 frame take minutes or ask for 1 GB.
+TEST(BadInput, DetectorConfigsThatWouldStallDetectionAreRefused) {
+  DetectorConfig config;
+  config.adaptive_thresh_win_size_min = 210;
+  config.adaptive_thresh_win_size_max = 25959;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("adaptive_thresh_win_size_max"), std::string::npos);
+  config.adaptive_thresh_win_size_max = 1001;
+  config.adaptive_thresh_win_size_step = 1;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("threshold windows"), std::string::npos);
+  config = {};
+  config.marker_border_bits = 162;
+  config.perspective_remove_pixel_per_cell = 98;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("perspective_remove_pixel_per_cell"), std::string::npos);
+  // dynamic_reconfigure's extremes stay accepted: 197 windows up to 199 px, 20 px per cell of 7x7.
+  config = {};
+  config.dictionary = "DICT_7X7_1000";
+  config.adaptive_thresh_win_size_min = 3;
+  config.adaptive_thresh_win_size_max = 199;
+  config.adaptive_thresh_win_size_step = 1;
+  config.perspective_remove_pixel_per_cell = 20;
+  EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
+}
+
+// Found by fuzz_config (regress_clahe_tile_grid_huge, regress_unsharp_sigma_huge,
+// regress_subpix_window_wider_than_frame, regress_approx_accuracy_out_of_range,
+// regress_thresh_constant_huge): options OpenCV answered with a huge allocation or cv::Exception.
+TEST(BadInput, OptionsOpenCvRefusesAreErrors) {
+  const cv::Mat frame(40, 40, CV_8UC1, cv::Scalar(200));
+  cv::Mat out;
+  PreprocessOptions preprocess;
+  preprocess.equalize = true;
+  preprocess.clahe_tile_grid = 1 << 30;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(frame, out, preprocess); }).find("clahe_tile_grid"), std::string::npos);
+  preprocess = {};
+  preprocess.unsharp_amount = 1.0;
+  preprocess.unsharp_sigma = 1e300;
+  EXPECT_NE(ErrorOf([&] { PreprocessFrame(frame, out, preprocess); }).find("unsharp_sigma"), std::string::npos);
+  DetectorConfig config;
+  config.fast_path = false;
+  config.corner_refinement = CornerRefinement::kSubpix;
+  config.corner_refinement_win_size = 30;  // cornerSubPix wants a frame of 2 * 30 + 5 px
+  cv::Mat marker;
+  cv::aruco::drawMarker(cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50), 1, 30, marker);
+  cv::Mat small(40, 40, CV_8UC1, cv::Scalar(255));
+  marker.copyTo(small(cv::Rect(5, 5, 30, 30)));
+  EXPECT_NE(ErrorOf([&] { Detect(small, Detector(config)); }).find("OpenCV cannot run"), std::string::npos);
+  config = {};
+  config.adaptive_thresh_constant = -3.5e250;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("adaptive_thresh_constant"), std::string::npos);
+}
+
+// Found by fuzz_core (regress_draw_nan_corner): a NaN corner rounded to INT_MIN and overflowed.
+TEST(BadInput, NonFiniteOrFarCornersToDrawDetections) {
+  cv::Mat image(48, 64, CV_8UC3, cv::Scalar::all(128));
+  for (const float bad : {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(), 3e9f}) {
+    ArucoTag tag;
+    tag.id = 4;
+    tag.corners = {{{10, 10}, {30, 10}, {30, 30}, {10, bad}}};
+    EXPECT_NE(ErrorOf([&] { DrawDetections(image, {tag}); }).find("tag 4 has a corner"), std::string::npos) << bad;
+    EXPECT_NE(ErrorOf([&] { LayoutLabels(image.size(), {tag}); }).find("tag 4 has a corner"), std::string::npos);
+  }
+}
+
 }  // namespace
 }  // namespace arucotag

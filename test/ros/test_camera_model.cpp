@@ -258,6 +258,17 @@ TEST(CameraModelFromInfo, InfosAreCheckedAndProblemsNamed) {
        "needs 4"},
       {"plumb_bob with 3 coefficients", [](auto& info) { info.D = {0.1, 0.2, 0.3}; }, false, size, "3 coefficients"},
       {"no size stated: nothing to compare", [](auto& info) { info.width = info.height = 0; }, false, {320, 240}, ""},
+      // Found by fuzz_ros (test/fuzz/corpus/ros/regress_info_roi_2e31): past INT_MAX, image_geometry's
+      // int views wrapped negative and the ROI's area overflowed; a binning of -1 divided INT_MIN.
+      {"roi of 2^31 px, binning 2^32 - 1",
+       [](auto& info) {
+         info.roi.width = 1u << 31;
+         info.roi.height = 300;
+         info.binning_x = 0xffffffffu;
+       },
+       false, size, "above 32768 px"},
+      {"sensor of 2^31 x 2^30 px", [](auto& info) { info.width = 1u << 31; info.height = 1u << 30; }, false, size,
+       "2147483648x1073741824 sensor"},
   };
   for (const auto& c : cases) {
     sensor_msgs::CameraInfo info = InfoFor(full);
