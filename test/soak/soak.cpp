@@ -395,11 +395,11 @@ int Main(int argc, char** argv) {
   });
   const double cpu_per_frame = (cpu_end - cpu_minute) * 1e3 / std::max<size_t>(1, sent.size() - sent_minute);
   const double growth = rss_end - rss_minute;
-  std::printf("soak: frames sent %zu, answered %zu (%.2f %%), both markers in %zu; latency publish -> tags median "
-              "%.2f ms, p99 %.2f ms; processing mean %.2f ms (frame period %.1f ms); manager CPU %.2f ms per frame; "
-              "RSS lowest %.1f MB over the 30 s after %.0f s, %.1f MB over the last 30 s (growth %+.2f MB)\n",
-              sent.size(), answered, 100.0 * answered / std::max<size_t>(1, sent.size()), with_tags,
-              Percentile(latency, 0.5), Percentile(latency, 0.99), mean_ms, 1e3 / kFrameRate, cpu_per_frame,
+  std::printf("soak: frames sent %zu (%.1f Hz), answered %zu (%.2f %%), both markers in %zu; latency publish -> tags "
+              "median %.2f ms, p99 %.2f ms; processing mean %.2f ms (frame period %.1f ms); manager CPU %.2f ms per "
+              "frame; RSS lowest %.1f MB over the 30 s after %.0f s, %.1f MB over the last 30 s (growth %+.2f MB)\n",
+              sent.size(), sent.size() / o.seconds, answered, 100.0 * answered / std::max<size_t>(1, sent.size()),
+              with_tags, Percentile(latency, 0.5), Percentile(latency, 0.99), mean_ms, 1e3 / kFrameRate, cpu_per_frame,
               rss_minute, settle, rss_end, growth);
   if (answered != sent.size()) {
     std::string which;
