@@ -209,6 +209,8 @@ class Camera {
     while (running_ && ros::ok()) {
       std::this_thread::sleep_until(next);
       next += period;
+      // A starved camera skips frames, as a driver does; catching up in a burst would flood the queues.
+      if (next <= Clock::now()) next = Clock::now() + period;
       const ros::Time stamp = ros::Time::now();
       auto image = boost::make_shared<sensor_msgs::Image>(frame_.image);
       auto info = boost::make_shared<sensor_msgs::CameraInfo>(frame_.info);
