@@ -45,6 +45,8 @@ using Clock = std::chrono::steady_clock;
 constexpr double kFrameRate = 30.0;
 constexpr const char* kNamespace = "/soak";
 constexpr const char* kFrame = "soak_optical";
+constexpr double kStatsWindow = 100;  // frames behind the nodelet's diagnostics means
+constexpr const char* kProcessingMean = "processing time mean (ms)";
 
 struct Options {
   std::string manager = "/soak_manager";
@@ -188,7 +190,9 @@ class Camera {
     running_ = false;
     if (thread_.joinable()) thread_.join();
   }
-  bool Connected() const { return image_.getNumSubscribers() > 0 && cloud_.getNumSubscribers() > 0; }
+  bool Connected() const {
+    return image_.getNumSubscribers() > 0 && info_.getNumSubscribers() > 0 && cloud_.getNumSubscribers() > 0;
+  }
   std::map<ros::Time, Clock::time_point> Sent() {
     std::lock_guard<std::mutex> lock(mutex_);
     return sent_;
@@ -205,6 +209,8 @@ class Camera {
     while (running_ && ros::ok()) {
       std::this_thread::sleep_until(next);
       next += period;
+      // A starved camera skips frames, as a driver does; catching up in a burst would flood the queues.
+      if (next <= Clock::now()) next = Clock::now() + period;
       const ros::Time stamp = ros::Time::now();
       auto image = boost::make_shared<sensor_msgs::Image>(frame_.image);
       auto info = boost::make_shared<sensor_msgs::CameraInfo>(frame_.info);
@@ -249,6 +255,9 @@ class Listener {
     std::lock_guard<std::mutex> lock(mutex_);
     return arrived_;
   }
+  // The nodelet subscribes to its inputs before anyone listens (publish_tf), so frames can be
+  // answered before this end's tags connection is up: wait for it, not only for the inputs.
+  bool Connected() const { return tags_.getNumPublishers() > 0; }
   size_t Count() {
     std::lock_guard<std::mutex> lock(mutex_);
     return arrived_.size();
@@ -308,7 +317,9 @@ int Main(int argc, char** argv) {
 
   // ---- Phase 1: the long run ----
   if (!Load(o)) throw Error("cannot load arucotag/DetectorNodelet into " + o.manager);
-  if (!WaitFor([&] { return camera.Connected(); }, 30.0)) throw Error("the nodelet never subscribed");
+  if (!WaitFor([&] { return camera.Connected() && listener.Connected(); }, 30.0)) {
+    throw Error("the nodelet and the soak never connected");
+  }
   std::printf("soak: %.0f s at %.0f Hz: 1280x720 bgr8 photo (2 markers), camera_info, 1280x720 cloud (14.7 MB)\n",
               o.seconds, kFrameRate);
   std::fflush(stdout);
@@ -316,14 +327,19 @@ int Main(int argc, char** argv) {
   const auto start = Clock::now();
   double cpu_minute = 0.0;
   size_t sent_minute = 0;
-  // RSS swings by the clouds in flight (15 MB each, mmapped and returned on free; 40 MB swings were
-  // seen under load): compare the lowest of the 30 samples (1 s apart) right after the first minute
-  // with the lowest of the last 30 -- the baseline with the queues empty -- not two instants.
+  // RSS swings by the clouds in flight (15 MB each; 40 MB swings were seen under load): compare the
+  // lowest of the 30 samples (1 s apart) right after the first minute with the lowest of the last 30
+  // -- the baseline with the queues empty -- not two instants.
   std::vector<double> rss_after_settle, rss_last;
   const double settle = std::min(60.0, o.seconds / 4.0);  // "after the first minute" (shorter runs: a quarter)
+  // The nodelet's processing mean over its last 100 frames, once a second: whether it kept up when
+  // a frame went unanswered.
+  std::vector<std::pair<double, double>> processing;  // (s since start, ms)
   while (Clock::now() - start < std::chrono::duration<double>(o.seconds)) {
     std::this_thread::sleep_for(std::chrono::seconds(1));
     const double t = std::chrono::duration<double>(Clock::now() - start).count();
+    const std::string mean = listener.Value(kProcessingMean);
+    if (!mean.empty()) processing.emplace_back(t, std::stod(mean));
     if (t >= settle) {
       if (rss_after_settle.empty()) {
         cpu_minute = CpuSeconds(o.manager_pid);
@@ -347,28 +363,58 @@ int Main(int argc, char** argv) {
   const auto sent = camera.Sent();
   const auto arrived = listener.Arrived();
   std::vector<double> latency;
-  size_t answered = 0, with_tags = 0;
+  // A frame unanswered while the processing mean of the 100 frames around it (reported in the
+  // seconds after it) was above the frame period was lost to overload, which the budget allows.
+  const auto overloaded = [&](double sent_at) {
+    return std::any_of(processing.begin(), processing.end(), [&](const auto& p) {
+      return p.first >= sent_at && p.first <= sent_at + kStatsWindow / kFrameRate + 1.5 && p.second >= 1e3 / kFrameRate;
+    });
+  };
+  size_t answered = 0, with_tags = 0, index = 0, lost_keeping_up = 0;
+  std::vector<std::string> unanswered;  // "frame N at T s": where in the run, to tell startup from load
   for (const auto& [stamp, at] : sent) {
+    ++index;
     const auto it = arrived.find(stamp);
-    if (it == arrived.end()) continue;
+    if (it == arrived.end()) {
+      const double sent_at = std::chrono::duration<double>(at - start).count();
+      const bool excused = overloaded(sent_at);
+      lost_keeping_up += !excused;
+      if (unanswered.size() < 10) {
+        char text[80];
+        std::snprintf(text, sizeof text, "frame %zu at %.2f s%s", index, sent_at, excused ? " (overloaded)" : "");
+        unanswered.push_back(text);
+      }
+      continue;
+    }
     ++answered;
     with_tags += it->second.second == 2;
     latency.push_back(std::chrono::duration<double, std::milli>(it->second.first - at).count());
   }
-  const double mean_ms = listener.Value("processing time mean (ms)").empty()
-                             ? 0.0
-                             : std::stod(listener.Value("processing time mean (ms)"));
+  double mean_ms = 0.0;
+  for (const auto& p : processing) mean_ms += p.second / processing.size();
+  const auto overloaded_seconds = std::count_if(processing.begin(), processing.end(), [](const auto& p) {
+    return p.second >= 1e3 / kFrameRate;
+  });
   const double cpu_per_frame = (cpu_end - cpu_minute) * 1e3 / std::max<size_t>(1, sent.size() - sent_minute);
   const double growth = rss_end - rss_minute;
-  std::printf("soak: frames sent %zu, answered %zu (%.2f %%), both markers in %zu; latency publish -> tags median "
-              "%.2f ms, p99 %.2f ms; processing mean %.2f ms (frame period %.1f ms); manager CPU %.2f ms per frame; "
-              "RSS lowest %.1f MB over the 30 s after %.0f s, %.1f MB over the last 30 s (growth %+.2f MB)\n",
-              sent.size(), answered, 100.0 * answered / std::max<size_t>(1, sent.size()), with_tags,
-              Percentile(latency, 0.5), Percentile(latency, 0.99), mean_ms, 1e3 / kFrameRate, cpu_per_frame,
+  std::printf("soak: frames sent %zu (%.1f Hz), answered %zu (%.2f %%), both markers in %zu; latency publish -> tags "
+              "median %.2f ms, p99 %.2f ms; processing mean %.2f ms (frame period %.1f ms); manager CPU %.2f ms per "
+              "frame; RSS lowest %.1f MB over the 30 s after %.0f s, %.1f MB over the last 30 s (growth %+.2f MB)\n",
+              sent.size(), sent.size() / o.seconds, answered, 100.0 * answered / std::max<size_t>(1, sent.size()),
+              with_tags, Percentile(latency, 0.5), Percentile(latency, 0.99), mean_ms, 1e3 / kFrameRate, cpu_per_frame,
               rss_minute, settle, rss_end, growth);
+  if (answered != sent.size()) {
+    std::string which;
+    for (const auto& u : unanswered) which += (which.empty() ? "" : ", ") + u;
+    // The nodelet's own counts tell a frame lost on the way in from one it dropped or failed on.
+    std::printf("soak: unanswered: %s; %zu while the nodelet kept up; its processing mean was above the frame "
+                "period in %ld of %zu seconds; the nodelet received %s frames and processed %s\n",
+                which.c_str(), lost_keeping_up, static_cast<long>(overloaded_seconds), processing.size(),
+                listener.Value("frames received").c_str(), listener.Value("frames processed").c_str());
+  }
   if (growth >= 1.0) failures.push_back("RSS grew " + std::to_string(growth) + " MB after the first minute (budget 1)");
-  if (mean_ms < 1e3 / kFrameRate && answered != sent.size()) {
-    failures.push_back(std::to_string(sent.size() - answered) + " frames unanswered while processing kept up");
+  if (lost_keeping_up > 0) {
+    failures.push_back(std::to_string(lost_keeping_up) + " frames unanswered while processing kept up");
   }
   if (with_tags != answered) failures.push_back(std::to_string(answered - with_tags) + " answers without both markers");
 
