@@ -17,28 +17,21 @@ namespace {
 
 using test::kDeg;
 
-struct Scene {
-  sim::Camera camera = test::RoverCamera();
-  sim::Marker marker;
-  ArucoTag tag;
-  cv::Mat cloud;  // CV_32FC3
-};
-
-Scene MakeScene(const sim::Marker& marker) {
-  Scene s;
-  s.marker = marker;
+// The marker rendered by the rover camera, detected, and its organized cloud with a ZED 2's stereo
+// noise into `cloud` (CV_32FC3).
+ArucoTag DetectWithCloud(const sim::Marker& marker, cv::Mat& cloud) {
+  const sim::Camera camera = test::RoverCamera();
   cv::Mat depth;
-  const cv::Mat image = sim::RenderScene(s.camera, {marker}, sim::RenderOptions(), &depth);
-  sim::CloudOptions cloud_options;
-  cloud_options.stereo = sim::DepthNoise::Zed2();
-  cloud_options.seed = 5;
-  s.cloud = sim::MakeOrganizedCloud(s.camera, depth, cloud_options, image);
+  const cv::Mat image = sim::RenderScene(camera, {marker}, sim::RenderOptions(), &depth);
+  sim::CloudOptions options;
+  options.stereo = sim::DepthNoise::Zed2();
+  options.seed = 5;
+  cloud = sim::MakeOrganizedCloud(camera, depth, options, image);
   cv::Mat grey;
   PreprocessFrame(image, grey);
   const auto tags = Detect(grey, Detector());
   EXPECT_EQ(tags.size(), 1u);
-  if (!tags.empty()) s.tag = tags[0];
-  return s;
+  return tags.empty() ? ArucoTag() : tags[0];
 }
 
 pcl::PointCloud<pcl::PointXYZ> ToPcl(const cv::Mat& cloud) {
@@ -60,10 +53,11 @@ cv::Vec3d Normal(const cv::Vec3d& rvec) {
 
 TEST(PclCloud, GivesTheSamePoseAsTheMatCloud) {
   const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.3, -0.1, 2.5}, 30.0, 10.0, 20.0);
-  const Scene s = MakeScene(marker);
-  ArucoTag from_mat = s.tag, from_pcl = s.tag;
-  ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, from_mat));
-  ASSERT_TRUE(EstimatePoseFromPointCloud(ToPcl(s.cloud), from_pcl));
+  cv::Mat cloud;
+  const ArucoTag detected = DetectWithCloud(marker, cloud);
+  ArucoTag from_mat = detected, from_pcl = detected;
+  ASSERT_TRUE(EstimatePoseFromPointCloud(cloud, cloud.size(), from_mat));
+  ASSERT_TRUE(EstimatePoseFromPointCloud(ToPcl(cloud), from_pcl));
   ASSERT_TRUE(from_pcl.cloud.has_rotation);
   // The same points in the same order: the same numbers.
   EXPECT_EQ(from_pcl.cloud.points, from_mat.cloud.points);
@@ -95,18 +89,19 @@ TEST(PclCloud, RejectsACloudThatIsNotAnImage) {
 // behind it. The plane fit must take the tag's face, not a plane tilted towards the wall.
 TEST(PclCloud, BackgroundAtTheTagsEdgeIsRejected) {
   const sim::Marker marker = sim::FacingCamera(4, 0.15, {0.2, 0.1, 2.0}, 25.0, 0.0, 0.0);
-  Scene s = MakeScene(marker);
+  cv::Mat cloud;
+  const ArucoTag detected = DetectWithCloud(marker, cloud);
   const CloudPoseOptions options;
-  const std::vector<cv::Point2f> quad(s.tag.corners.begin(), s.tag.corners.end());
+  const std::vector<cv::Point2f> quad(detected.corners.begin(), detected.corners.end());
   const cv::Matx33d to_marker = cv::getPerspectiveTransform(
       quad, std::vector<cv::Point2f>{{-0.5f, 0.5f}, {0.5f, 0.5f}, {0.5f, -0.5f}, {-0.5f, -0.5f}});
   const double limit = 0.5 * (1.0 - options.shrink);
   std::vector<std::pair<double, cv::Point>> used;  // (a, pixel) of the points the pose uses
-  for (int v = 0; v < s.cloud.rows; ++v) {
-    for (int u = 0; u < s.cloud.cols; ++u) {
+  for (int v = 0; v < cloud.rows; ++v) {
+    for (int u = 0; u < cloud.cols; ++u) {
       const cv::Vec3d m = to_marker * cv::Vec3d(u, v, 1.0);
       const double a = m[0] / m[2], b = m[1] / m[2];
-      if (std::abs(a) <= limit && std::abs(b) <= limit && std::isfinite(s.cloud.at<cv::Vec3f>(v, u)[2])) {
+      if (std::abs(a) <= limit && std::abs(b) <= limit && std::isfinite(cloud.at<cv::Vec3f>(v, u)[2])) {
         used.push_back({a, cv::Point(u, v)});
       }
     }
@@ -115,13 +110,13 @@ TEST(PclCloud, BackgroundAtTheTagsEdgeIsRejected) {
   std::sort(used.begin(), used.end(), [](const auto& x, const auto& y) { return x.first > y.first; });
   const size_t moved = used.size() / 5;
   for (size_t i = 0; i < moved; ++i) {
-    cv::Vec3f& p = s.cloud.at<cv::Vec3f>(used[i].second);
+    cv::Vec3f& p = cloud.at<cv::Vec3f>(used[i].second);
     p *= static_cast<float>(1.0 + 1.0 / cv::norm(p));
   }
   const cv::Vec3d normal_truth = Normal(marker.rvec);
 
-  ArucoTag tag = s.tag;
-  ASSERT_TRUE(EstimatePoseFromPointCloud(ToPcl(s.cloud), tag, options));
+  ArucoTag tag = detected;
+  ASSERT_TRUE(EstimatePoseFromPointCloud(ToPcl(cloud), tag, options));
   ASSERT_TRUE(tag.cloud.has_normal);
   EXPECT_LT(cv::norm(tag.cloud.centre - marker.tvec), 0.01);
   EXPECT_GT(tag.cloud.normal.dot(normal_truth), std::cos(3.0 * kDeg));
@@ -132,8 +127,8 @@ TEST(PclCloud, BackgroundAtTheTagsEdgeIsRejected) {
   // tells the two apart.
   CloudPoseOptions legacy = options;
   legacy.plane_fit = PlaneFit::kLegacy;
-  ArucoTag dragged = s.tag;
-  ASSERT_TRUE(EstimatePoseFromPointCloud(s.cloud, s.camera.size, dragged, legacy));
+  ArucoTag dragged = detected;
+  ASSERT_TRUE(EstimatePoseFromPointCloud(cloud, cloud.size(), dragged, legacy));
   EXPECT_GT(cv::norm(dragged.cloud.centre - marker.tvec), 0.05);
 }
 
