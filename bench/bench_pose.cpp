@@ -8,16 +8,25 @@
 // time per tag. --csv writes one row per detected marker (geometry, corner noise, errors, NEES) for
 // calibrating the covariances.
 //
-//   bench_pose [--frames 1000] [--json FILE] [--csv FILE] [--seed 7]
+// A second table compares the cloud's plane fits (CloudPoseOptions::plane_fit) on the same tags:
+// per range bin the median normal, rotation and centre errors of the cloud pose, the flips of the
+// cloud and fused poses, and the time per tag of the cloud step; --edge-background F first moves
+// that fraction of the cloud points each tag's pose uses, the outermost, 1 m further along their
+// rays (a wall behind the tag seen past its edge, as stereo matching fattens edges).
+//
+//   bench_pose [--frames 1000] [--json FILE] [--csv FILE] [--seed 7] [--plane-fits ransac,legacy]
+//              [--edge-background 0]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <arucotag/arucotag.hpp>
 #include <arucotag/sim.hpp>
@@ -27,10 +36,41 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 constexpr double kFlipDeg = 10.0;
+constexpr int kTimingRuns = 3;  // per tag and plane fit in the comparison
 const double kBins[] = {1.0, 3.0, 6.0, 10.0, 15.0};
 constexpr int kBinCount = 4;
 constexpr int kMethods = 3;  // pnp, cloud, fused
 const char* const kMethodNames[kMethods] = {"pnp", "cloud", "fused"};
+
+struct FitName {
+  const char* name;
+  PlaneFit fit;
+};
+const FitName kFitNames[] = {
+    {"ransac", PlaneFit::kRansac}, {"msac", PlaneFit::kMsac}, {"lmeds", PlaneFit::kLmeds}, {"mlesac", PlaneFit::kMlesac},
+    {"legacy", PlaneFit::kLegacy}};
+
+std::vector<FitName> ParseFits(const std::string& list) {
+  std::vector<FitName> fits;
+  size_t start = 0;
+  while (start <= list.size()) {
+    const size_t end = std::min(list.find(',', start), list.size());
+    const std::string name = list.substr(start, end - start);
+    const auto known = std::find_if(std::begin(kFitNames), std::end(kFitNames),
+                                    [&](const FitName& f) { return name == f.name; });
+    if (known == std::end(kFitNames)) throw Error("unknown plane fit '" + name + "' (ransac, msac, lmeds, mlesac, legacy)");
+    fits.push_back(*known);
+    start = end + 1;
+  }
+  return fits;
+}
+
+// One plane fit's results in one range bin.
+struct FitBin {
+  int tags = 0, planes = 0, flips_cloud = 0, flips_fused = 0;
+  std::vector<double> normal_deg, rotation_deg, centre_mm;
+  double ms = 0.0;
+};
 
 double RotationDeg(const cv::Vec3d& estimate, const cv::Vec3d& truth) {
   cv::Matx33d a, b;
@@ -72,16 +112,44 @@ double Mean(const std::vector<double>& v) {
 // JSON has no NaN: an empty bin's mean is null.
 std::string JsonNumber(double value) { return std::isfinite(value) ? std::to_string(value) : "null"; }
 
+// Moves `fraction` of the finite cloud points the cloud pose uses (inside the tag shrunk by `shrink`),
+// the outermost first (in the marker's own square coordinates), 1 m further along their rays.
+void PushEdgeToBackground(const ArucoTag& tag, double fraction, double shrink, cv::Mat& cloud) {
+  const std::vector<cv::Point2f> quad(tag.corners.begin(), tag.corners.end());
+  const std::vector<cv::Point2f> square{{-0.5f, 0.5f}, {0.5f, 0.5f}, {0.5f, -0.5f}, {-0.5f, -0.5f}};
+  const cv::Matx33d to_marker = cv::getPerspectiveTransform(quad, square);
+  const cv::Rect box = cv::boundingRect(quad) & cv::Rect(0, 0, cloud.cols, cloud.rows);
+  std::vector<std::pair<double, cv::Point>> inside;
+  for (int v = box.y; v < box.br().y; ++v) {
+    for (int u = box.x; u < box.br().x; ++u) {
+      const cv::Vec3d m = to_marker * cv::Vec3d(u, v, 1.0);
+      const double edge = std::max(std::abs(m[0] / m[2]), std::abs(m[1] / m[2]));
+      if (edge <= 0.5 * (1.0 - shrink) && std::isfinite(cloud.at<cv::Vec3f>(v, u)[2])) inside.push_back({-edge, {u, v}});
+    }
+  }
+  const size_t moved = static_cast<size_t>(fraction * inside.size());
+  std::partial_sort(inside.begin(), inside.begin() + moved, inside.end(),
+                    [](const auto& a, const auto& b) { return a.first < b.first; });
+  for (size_t i = 0; i < moved; ++i) {
+    cv::Vec3f& p = cloud.at<cv::Vec3f>(inside[i].second);
+    p *= static_cast<float>(1.0 + 1.0 / cv::norm(p));
+  }
+}
+
 int Main(int argc, char** argv) {
   int frames = 1000;
   unsigned seed = 7;
   std::string json, csv_path;
+  std::vector<FitName> fits = ParseFits("ransac,legacy");
+  double edge_background = 0.0;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string arg = argv[i];
     if (arg == "--frames") frames = std::stoi(argv[i + 1]);
     else if (arg == "--json") json = argv[i + 1];
     else if (arg == "--csv") csv_path = argv[i + 1];
     else if (arg == "--seed") seed = static_cast<unsigned>(std::stoul(argv[i + 1]));
+    else if (arg == "--plane-fits") fits = ParseFits(argv[i + 1]);
+    else if (arg == "--edge-background") edge_background = std::stod(argv[i + 1]);
     else throw Error("unknown option " + arg);
   }
   const sim::Camera camera = sim::MakeCamera({1280, 720}, 65.0);
@@ -101,6 +169,7 @@ int Main(int argc, char** argv) {
     std::fprintf(csv, "\n");
   }
   Bin bins[kBinCount];
+  std::vector<std::vector<FitBin>> fit_bins(kBinCount, std::vector<FitBin>(fits.size()));
   double time_ms[kMethods] = {0, 0, 0};
   int timed = 0, missed = 0;
   cv::RNG rng(seed);
@@ -115,7 +184,7 @@ int Main(int argc, char** argv) {
     sim::CloudOptions cloud_render;
     cloud_render.stereo = sim::DepthNoise::Zed2();
     cloud_render.seed = render.seed;
-    const cv::Mat cloud = sim::MakeOrganizedCloud(camera, depth, cloud_render, image);
+    cv::Mat cloud = sim::MakeOrganizedCloud(camera, depth, cloud_render, image);
 
     cv::Mat grey;
     PreprocessFrame(image, grey);
@@ -125,6 +194,7 @@ int Main(int argc, char** argv) {
       ++missed;
       continue;
     }
+    if (edge_background > 0.0) PushEdgeToBackground(*found, edge_background, cloud_options.shrink, cloud);
     ArucoTag pnp = *found;
     auto t0 = Clock::now();
     if (!EstimatePoseFromPNP(model, pnp)) {
@@ -158,6 +228,40 @@ int Main(int argc, char** argv) {
       flipped[m] = error > kFlipDeg;
       bin.flips[m] += flipped[m];
     }
+    cv::Matx33d r_truth;
+    cv::Rodrigues(truth.rvec, r_truth);
+    const cv::Vec3d normal_truth(r_truth(0, 2), r_truth(1, 2), r_truth(2, 2));
+    for (size_t k = 0; k < fits.size(); ++k) {
+      // Alternate the order, so no fit always finds the cloud in cache.
+      const size_t i = f % 2 ? fits.size() - 1 - k : k;
+      CloudPoseOptions options = cloud_options;
+      options.plane_fit = fits[i].fit;
+      FitBin& fb = fit_bins[b][i];
+      ArucoTag alone, with_pnp = pnp;
+      // The fastest of three runs: other processes on the machine only ever add time.
+      bool measured = false;
+      double fastest = 1e9;
+      for (int run = 0; run < kTimingRuns; ++run) {
+        alone = *found;
+        const auto start = Clock::now();
+        measured = EstimatePoseFromPointCloud(cloud, camera.size, alone, options);
+        fastest = std::min(fastest, std::chrono::duration<double, std::milli>(Clock::now() - start).count());
+      }
+      fb.ms += fastest;
+      ++fb.tags;
+      if (!measured) continue;
+      EstimatePoseFromPointCloud(cloud, camera.size, with_pnp, options);
+      ResolvePose(with_pnp, PoseSource::kFused);
+      fb.flips_fused += RotationDeg(with_pnp.rvec, truth.rvec) > kFlipDeg;
+      fb.centre_mm.push_back(1000.0 * cv::norm(alone.cloud.centre - truth.tvec));
+      if (!alone.cloud.has_normal) continue;
+      ++fb.planes;
+      const double rotation = RotationDeg(alone.rvec, truth.rvec);
+      fb.flips_cloud += rotation > kFlipDeg;
+      fb.rotation_deg.push_back(rotation);
+      fb.normal_deg.push_back(std::acos(std::min(1.0, alone.cloud.normal.dot(normal_truth))) * 180.0 / CV_PI);
+    }
+
     bin.fused_fixed += flipped[0] && !flipped[2];
     bin.fused_broke += !flipped[0] && flipped[2];
     // NEES of each pose against its own covariance. A PnP (or fused) flip is left out: the
@@ -229,6 +333,28 @@ int Main(int argc, char** argv) {
               "flip is `ambiguity`'s to report), every cloud pose counts; rotations only where measured.\n");
   std::printf("\nTime per tag: pnp %.3f ms, cloud %.3f ms, fused %.3f ms (pnp + cloud + choice).\n",
               time_ms[0] / std::max(1, timed), time_ms[1] / std::max(1, timed), time_ms[2] / std::max(1, timed));
+
+  std::printf("\nCloud plane fits on the same tags%s: median errors of the cloud pose, flips (> %g deg) of the "
+              "cloud and fused poses, time of EstimatePoseFromPointCloud per tag (fastest of %d runs).\n\n",
+              edge_background > 0.0 ? (", " + std::to_string(int(100 * edge_background + 0.5)) +
+                                        " % of each tag's points moved 1 m behind its edge").c_str()
+                                    : "",
+              kFlipDeg, kTimingRuns);
+  std::printf("| range | fit | tags / planes | normal err (deg) | rot err (deg) | centre err (mm) | flips cloud | "
+              "flips fused | ms per tag |\n|---|---|---|---|---|---|---|---|---|\n");
+  std::vector<double> fit_ms(fits.size(), 0.0);
+  for (int b = 0; b < kBinCount; ++b) {
+    for (size_t i = 0; i < fits.size(); ++i) {
+      const FitBin& fb = fit_bins[b][i];
+      fit_ms[i] += fb.ms;
+      std::printf("| %g-%g m | %s | %d / %d | %.2f | %.2f | %.1f | %d | %d | %.3f |\n", kBins[b], kBins[b + 1],
+                  fits[i].name, fb.tags, fb.planes, Median(fb.normal_deg), Median(fb.rotation_deg),
+                  Median(fb.centre_mm), fb.flips_cloud, fb.flips_fused, fb.ms / std::max(1, fb.tags));
+    }
+  }
+  std::printf("\nCloud step per tag, all bins:");
+  for (size_t i = 0; i < fits.size(); ++i) std::printf(" %s %.3f ms", fits[i].name, fit_ms[i] / std::max(1, timed));
+  std::printf(".\n");
   if (!json.empty()) {
     std::ofstream out(json);
     out << "{\"frames\": " << frames << ", \"detected\": " << timed << ", \"bins\": [";
@@ -244,7 +370,21 @@ int Main(int argc, char** argv) {
       out << "}";
     }
     out << "], \"ms_per_tag\": {\"pnp\": " << time_ms[0] / std::max(1, timed) << ", \"cloud\": "
-        << time_ms[1] / std::max(1, timed) << ", \"fused\": " << time_ms[2] / std::max(1, timed) << "}}\n";
+        << time_ms[1] / std::max(1, timed) << ", \"fused\": " << time_ms[2] / std::max(1, timed) << "}";
+    out << ", \"edge_background\": " << edge_background << ", \"plane_fits\": {";
+    for (size_t i = 0; i < fits.size(); ++i) {
+      out << (i ? ", " : "") << "\"" << fits[i].name << "\": {\"ms_per_tag\": " << fit_ms[i] / std::max(1, timed)
+          << ", \"bins\": [";
+      for (int b = 0; b < kBinCount; ++b) {
+        const FitBin& fb = fit_bins[b][i];
+        out << (b ? ", " : "") << "{\"tags\": " << fb.tags << ", \"planes\": " << fb.planes
+            << ", \"normal_deg\": " << Median(fb.normal_deg) << ", \"rotation_deg\": " << Median(fb.rotation_deg)
+            << ", \"centre_mm\": " << Median(fb.centre_mm) << ", \"flips_cloud\": " << fb.flips_cloud
+            << ", \"flips_fused\": " << fb.flips_fused << "}";
+      }
+      out << "]}";
+    }
+    out << "}}\n";
   }
   return 0;
 }

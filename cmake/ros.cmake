@@ -10,7 +10,7 @@ add_library(arucotag_nodelet
   src/nodelet/parameters.cpp
   src/nodelet/tracks.cpp)
 target_include_directories(arucotag_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
-target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS} ${pcl_conversions_INCLUDE_DIRS})
 target_link_libraries(arucotag_nodelet arucotag_core ${catkin_LIBRARIES})
 add_dependencies(arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp ${PROJECT_NAME}_gencfg)
 
@@ -38,9 +38,10 @@ if(CATKIN_ENABLE_TESTING)
   target_compile_definitions(test_ros_encodings PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
 
   # The camera_info conversion without a master: binned, cropped and fisheye renders against truth;
-  # ToMessage's covariance and orientation flag; the tracks' message, markers and frame change.
+  # ToMessage's covariance and orientation flag; the tracks' message, markers and frame change;
+  # PointCloud2 -> pcl::PointCloud (CloudFromMessage).
   catkin_add_gtest(test_camera_model test/ros/test_camera_model.cpp test/ros/test_conversions.cpp
-    test/ros/test_tracks.cpp)
+    test/ros/test_tracks.cpp test/ros/test_cloud_conversion.cpp)
   target_include_directories(test_camera_model PRIVATE ${ARUCOTAG_ROS_INCLUDES})
   target_include_directories(test_camera_model SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
   target_link_libraries(test_camera_model arucotag_nodelet arucotag_sim ${catkin_LIBRARIES} ${GTEST_MAIN_LIBRARIES})

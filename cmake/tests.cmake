@@ -8,6 +8,7 @@ catkin_add_gtest(test_core
   test/core/test_draw.cpp
   test/core/test_camera_model.cpp
   test/core/test_fast_path.cpp
+  test/core/test_pcl_cloud.cpp
   test/core/test_point_cloud.cpp
   test/core/test_pose_covariance.cpp
   test/core/test_preprocess.cpp

@@ -9,7 +9,7 @@ PACKAGES=(
   libtf2-ros-dev libtf2-geometry-msgs-dev libmessage-filters-dev
   librostest-dev python3-rostest python3-roslaunch python3-rosbag librosbag-dev python3-roslz4 libroslz4-dev
   python3-rospy python3-sensor-msgs python3-std-msgs python3-geometry-msgs
-  libopencv-dev libopencv-contrib-dev
+  libopencv-dev libopencv-contrib-dev libpcl-dev libpcl-conversions-dev
   ros-sensor-msgs ros-geometry-msgs ros-visualization-msgs ros-std-msgs
   libdiagnostic-updater-dev libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
   libgtest-dev googletest libbenchmark-dev

@@ -3,6 +3,8 @@
 #include <vector>
 
 #include <opencv2/core.hpp>
+#include <pcl/point_cloud.h>
+#include <pcl/point_types.h>
 
 #include <arucotag/aruco_tag.hpp>
 
@@ -80,6 +82,21 @@ struct CameraModel {
 /// length.
 bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag);
 
+/// How EstimatePoseFromPointCloud fits the marker plane to the tag's points.
+enum class PlaneFit {
+  /// PCL's RANSAC (pcl::RandomSampleConsensus, pcl::SampleConsensusModelPlane) with an inlier
+  /// threshold of three times the depth noise at the tag's range, then least squares on the
+  /// inliers: rejects background seen past the tag's edge however many points it has, up to half.
+  kRansac,
+  kMsac,   ///< the same with PCL's MSAC (pcl::MEstimatorSampleConsensus)
+  kLmeds,  ///< the same with PCL's least median of squares (pcl::LeastMedianSquares)
+  kMlesac,  ///< the same with PCL's MLESAC (pcl::MaximumLikelihoodSampleConsensus)
+  /// Least squares, then points beyond three robust sigmas (MAD) of the residuals dropped, three
+  /// rounds (arucotag before PCL): a large share of background points drags the first fit, and
+  /// the rejection with it. Kept for comparison (bench_pose).
+  kLegacy,
+};
+
 /// Tuning of EstimatePoseFromPointCloud.
 struct CloudPoseOptions {
   double shrink = 0.15;   ///< fraction of the half-side trimmed from each edge (stereo edges bleed)
@@ -91,12 +108,13 @@ struct CloudPoseOptions {
   /// ZED 2 at HD720 (0.15 px / (700 px * 0.12 m)). Stereo noise is correlated and hides in small
   /// plane residuals, so this is the floor of the plane's depth noise.
   double depth_noise_per_m2 = 0.0018;
+  PlaneFit plane_fit = PlaneFit::kRansac;  ///< see PlaneFit
 };
 
 /// Measures the tag from an organized cloud (CV_32FC3, one XYZ point per image pixel, in the image's
 /// optical frame, metres, NaN where there is no depth). Uses the finite points inside the tag's
-/// quadrilateral shrunk by options.shrink, fits the marker plane robustly (outliers rejected by
-/// their residual), takes the centre where the fit puts the marker centre, the face normal and,
+/// quadrilateral shrunk by options.shrink, fits the marker plane robustly (options.plane_fit:
+/// background and flying pixels rejected), takes the centre where the fit puts the marker centre, the face normal and,
 /// with enough points, the in-plane orientation, and the covariance of centre and rotation from the
 /// fit's residuals and point count, widened for correlated stereo noise by the camera's depth-noise
 /// model (options.depth_noise_per_m2). Fills tag.cloud and then the tag's pose (see
@@ -105,6 +123,12 @@ struct CloudPoseOptions {
 /// number made of NaNs. Throws arucotag::Error when the cloud is
 /// not CV_32FC3 or its size differs from image_size.
 bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
+                                const CloudPoseOptions& options = {});
+
+/// The same from an organized PCL cloud (one point per image pixel: width x height is the image's
+/// size), for example one pcl::fromROSMsg made of a sensor_msgs/PointCloud2. Throws arucotag::Error
+/// when the cloud is not organized (height 1) or holds other than width x height points.
+bool EstimatePoseFromPointCloud(const pcl::PointCloud<pcl::PointXYZ>& cloud, ArucoTag& tag,
                                 const CloudPoseOptions& options = {});
 
 /// Which of the tag's two PnP solutions (0 = the corners' pick) the fused pose takes. Each

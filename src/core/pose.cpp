@@ -7,6 +7,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "plane_fit.hpp"
 #include "reprojection.hpp"
 
 namespace arucotag {
@@ -368,36 +369,8 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
 
 namespace {
 
-struct Sample {
-  double a, b;    // marker-plane coordinates, in side lengths, origin at the centre
-  cv::Vec3d xyz;  // cloud point
-};
-
-// Least-squares fit of xyz = c + a * ex + b * ey: exact for a plane seen through a pinhole, because
-// (a, b) come from the image-to-marker homography. Returns false when the system is singular.
-bool FitAffine(const std::vector<Sample>& samples, const std::vector<char>& use, cv::Vec3d& c, cv::Vec3d& ex,
-               cv::Vec3d& ey) {
-  cv::Matx33d ata = cv::Matx33d::zeros();
-  cv::Matx33d atb = cv::Matx33d::zeros();  // column j = right-hand side for coordinate j
-  for (size_t i = 0; i < samples.size(); ++i) {
-    if (!use[i]) continue;
-    const cv::Vec3d row(1.0, samples[i].a, samples[i].b);
-    ata += row * row.t();
-    atb += row * samples[i].xyz.t();
-  }
-  cv::Matx33d sol;
-  if (!cv::solve(ata, atb, sol, cv::DECOMP_CHOLESKY)) return false;
-  c = cv::Vec3d(sol(0, 0), sol(0, 1), sol(0, 2));
-  ex = cv::Vec3d(sol(1, 0), sol(1, 1), sol(1, 2));
-  ey = cv::Vec3d(sol(2, 0), sol(2, 1), sol(2, 2));
-  return std::isfinite(cv::norm(c)) && std::isfinite(cv::norm(ex)) && std::isfinite(cv::norm(ey));
-}
-
-double Median(std::vector<double> values) {
-  const auto mid = values.begin() + values.size() / 2;
-  std::nth_element(values.begin(), mid, values.end());
-  return *mid;
-}
+using internal::Median;
+using internal::Sample;
 
 // The marker -> camera rotation of a fitted plane xyz = c + a * ex + b * ey: z the face normal turned
 // towards the camera, x along ex.
@@ -541,18 +514,20 @@ PoseCovariance CloudCovariance(const PoseCovariance& plane, const CloudResult& c
   return covariance;
 }
 
-}  // namespace
+// An organized cloud's points wherever they lie in memory: pixel (u, v)'s x, y, z are the three
+// floats at data + v * row_step + u * point_step. Both overloads read through it.
+struct CloudView {
+  const unsigned char* data;
+  size_t row_step, point_step;
+  cv::Size size;
+  const float* At(int u, int v) const {
+    return reinterpret_cast<const float*>(data + static_cast<size_t>(v) * row_step +
+                                          static_cast<size_t>(u) * point_step);
+  }
+};
 
-bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
-                                const CloudPoseOptions& options) {
-  if (cloud.type() != CV_32FC3) {
-    throw Error("EstimatePoseFromPointCloud: cloud must be an organized CV_32FC3 (XYZ) matrix");
-  }
-  if (cloud.size() != image_size) {
-    throw Error("EstimatePoseFromPointCloud: cloud is " + std::to_string(cloud.cols) + "x" +
-                std::to_string(cloud.rows) + " but the image is " + std::to_string(image_size.width) + "x" +
-                std::to_string(image_size.height) + "; an organized cloud must match the image pixel for pixel");
-  }
+bool EstimatePoseFromCloudView(const CloudView& cloud, ArucoTag& tag, const CloudPoseOptions& options) {
+  const cv::Size image_size = cloud.size;
   tag.cloud = CloudResult();
 
   std::vector<cv::Point2f> image_quad(tag.corners.begin(), tag.corners.end());
@@ -563,13 +538,12 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
 
   std::vector<Sample> samples;
   for (int v = box.y; v < box.y + box.height; ++v) {
-    const auto* row = cloud.ptr<cv::Vec3f>(v);
     for (int u = box.x; u < box.x + box.width; ++u) {
       const cv::Vec3d m = to_marker * cv::Vec3d(u, v, 1.0);
       if (!(std::abs(m[2]) > 1e-12)) continue;
       const double a = m[0] / m[2], b = m[1] / m[2];
       if (std::abs(a) > limit || std::abs(b) > limit) continue;
-      const cv::Vec3f& p = row[u];
+      const float* p = cloud.At(u, v);
       if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]) || !(p[2] > 0.0f)) continue;
       samples.push_back({a, b, cv::Vec3d(p[0], p[1], p[2])});
     }
@@ -590,30 +564,12 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
   }
 
   CloudResult& result = tag.cloud;
-  std::vector<char> use(samples.size(), 1);
-  cv::Vec3d c, ex, ey;
-  bool fitted = static_cast<int>(samples.size()) >= options.min_plane_points;
-  // Fit, drop points far from the fit (flying pixels, background through holes), refit.
-  for (int round = 0; fitted && round < 3; ++round) {
-    if (!FitAffine(samples, use, c, ex, ey)) {
-      fitted = false;
-      break;
-    }
-    std::vector<double> residuals(samples.size());
-    for (size_t i = 0; i < samples.size(); ++i) {
-      residuals[i] = cv::norm(samples[i].xyz - (c + samples[i].a * ex + samples[i].b * ey));
-    }
-    const double mad = Median(residuals);
-    const double threshold = std::max(3.0 * 1.4826 * mad, 1e-4);
-    int kept = 0;
-    for (size_t i = 0; i < samples.size(); ++i) {
-      use[i] = residuals[i] <= threshold;
-      kept += use[i];
-    }
-    if (kept < options.min_plane_points) fitted = false;
-  }
+  internal::MarkerPlane plane;
+  const bool fitted = internal::FitMarkerPlane(samples, options, plane);
+  const std::vector<char>& use = plane.use;
+  const cv::Vec3d &c = plane.c, &ex = plane.ex, &ey = plane.ey;
 
-  if (fitted && cv::norm(ex.cross(ey)) > 0.0 && cv::norm(ex) > 0.0) {
+  if (fitted) {
     result.points = static_cast<int>(std::count(use.begin(), use.end(), 1));
     result.centre = c;
     result.rotation = PlaneRotation(c, ex, ey);
@@ -653,6 +609,37 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
   result.valid = true;
   ResolvePose(tag, tag.pnp.valid ? PoseSource::kFused : PoseSource::kPointCloud);
   return true;
+}
+
+}  // namespace
+
+bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size, ArucoTag& tag,
+                                const CloudPoseOptions& options) {
+  if (cloud.type() != CV_32FC3) {
+    throw Error("EstimatePoseFromPointCloud: cloud must be an organized CV_32FC3 (XYZ) matrix");
+  }
+  if (cloud.size() != image_size) {
+    throw Error("EstimatePoseFromPointCloud: cloud is " + std::to_string(cloud.cols) + "x" +
+                std::to_string(cloud.rows) + " but the image is " + std::to_string(image_size.width) + "x" +
+                std::to_string(image_size.height) + "; an organized cloud must match the image pixel for pixel");
+  }
+  return EstimatePoseFromCloudView({cloud.data, cloud.step[0], sizeof(cv::Vec3f), image_size}, tag, options);
+}
+
+bool EstimatePoseFromPointCloud(const pcl::PointCloud<pcl::PointXYZ>& cloud, ArucoTag& tag,
+                                const CloudPoseOptions& options) {
+  const cv::Size size(static_cast<int>(cloud.width), static_cast<int>(cloud.height));
+  if (cloud.height <= 1) {
+    throw Error("EstimatePoseFromPointCloud: the PCL cloud is not organized (" + std::to_string(cloud.width) + "x" +
+                std::to_string(cloud.height) + "); it must hold one point per image pixel");
+  }
+  if (cloud.points.size() != static_cast<size_t>(size.area())) {
+    throw Error("EstimatePoseFromPointCloud: the PCL cloud is " + std::to_string(cloud.width) + "x" +
+                std::to_string(cloud.height) + " but holds " + std::to_string(cloud.points.size()) + " points");
+  }
+  return EstimatePoseFromCloudView({reinterpret_cast<const unsigned char*>(cloud.points.data()),
+                                    sizeof(pcl::PointXYZ) * cloud.width, sizeof(pcl::PointXYZ), size},
+                                   tag, options);
 }
 
 int FusedChoice(const ArucoTag& tag) {

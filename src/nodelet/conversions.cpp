@@ -10,6 +10,8 @@
 #include <image_geometry/pinhole_camera_model.h>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <pcl/common/transforms.h>
+#include <pcl_conversions/pcl_conversions.h>
 #include <sensor_msgs/PointField.h>
 #include <sensor_msgs/distortion_models.h>
 #include <sensor_msgs/image_encodings.h>
@@ -207,26 +209,24 @@ sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& e
   return image;
 }
 
-cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::Transform* transform) {
+pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& cloud, const cv::Size& image_size,
+                                                const geometry_msgs::Transform* transform) {
+  // pcl::fromROSMsg trusts the message: a missing or float64 field leaves zeros (with a warning on
+  // the console), a short buffer is read past its end. So everything it relies on is checked here.
   if (cloud.height <= 1 || cloud.width == 0) {
     throw Error("point cloud is not organized (" + Size(cloud.width, cloud.height) +
                 "); an organized cloud has one point per image pixel");
   }
   if (cloud.is_bigendian) throw Error("big-endian point clouds are not supported");
-  int offsets[3] = {-1, -1, -1};
   const char* names[3] = {"x", "y", "z"};
-  for (const auto& field : cloud.fields) {
-    for (int axis = 0; axis < 3; ++axis) {
-      if (field.name != names[axis]) continue;
-      if (field.datatype != sensor_msgs::PointField::FLOAT32 || field.count != 1) {
-        throw Error(std::string("point cloud field '") + names[axis] + "' is not a single float32");
-      }
-      offsets[axis] = static_cast<int>(field.offset);
-    }
-  }
   for (int axis = 0; axis < 3; ++axis) {
-    if (offsets[axis] < 0) throw Error(std::string("point cloud has no '") + names[axis] + "' field");
-    if (static_cast<size_t>(offsets[axis]) + sizeof(float) > cloud.point_step) {
+    const auto field = std::find_if(cloud.fields.begin(), cloud.fields.end(),
+                                    [&](const sensor_msgs::PointField& f) { return f.name == names[axis]; });
+    if (field == cloud.fields.end()) throw Error(std::string("point cloud has no '") + names[axis] + "' field");
+    if (field->datatype != sensor_msgs::PointField::FLOAT32 || field->count != 1) {
+      throw Error(std::string("point cloud field '") + names[axis] + "' is not a single float32");
+    }
+    if (static_cast<size_t>(field->offset) + sizeof(float) > cloud.point_step) {
       throw Error(std::string("point cloud field '") + names[axis] + "' lies beyond point_step");
     }
   }
@@ -235,31 +235,38 @@ cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::T
     throw Error("point cloud buffer is shorter than " + Size(cloud.width, cloud.height) + " points of " +
                 std::to_string(cloud.point_step) + " bytes");
   }
+  const int factor = image_size.width / static_cast<int>(cloud.width);
+  if (cv::Size(cloud.width, cloud.height) != image_size &&
+      (factor < 2 || static_cast<int>(cloud.width) * factor != image_size.width ||
+       static_cast<int>(cloud.height) * factor != image_size.height)) {
+    throw Error("point cloud is " + Size(cloud.width, cloud.height) + " but the image is " +
+                Size(image_size.width, image_size.height) +
+                "; an organized cloud must match the image pixel for pixel or be it downscaled by a whole factor");
+  }
 
-  cv::Matx33f r = cv::Matx33f::eye();
-  cv::Vec3f t(0.f, 0.f, 0.f);
+  pcl::PointCloud<pcl::PointXYZ> points;
+  pcl::fromROSMsg(cloud, points);
   if (transform) {
-    tf2::Quaternion q;
-    tf2::fromMsg(transform->rotation, q);
-    const tf2::Matrix3x3 m(q);
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j) r(i, j) = static_cast<float>(m[i][j]);
-    t = cv::Vec3f(static_cast<float>(transform->translation.x), static_cast<float>(transform->translation.y),
-                  static_cast<float>(transform->translation.z));
+    // Non-finite points are left as they are: holes stay holes.
+    const Eigen::Affine3f to_image =
+        Eigen::Translation3f(static_cast<float>(transform->translation.x), static_cast<float>(transform->translation.y),
+                             static_cast<float>(transform->translation.z)) *
+        Eigen::Quaternionf(static_cast<float>(transform->rotation.w), static_cast<float>(transform->rotation.x),
+                           static_cast<float>(transform->rotation.y), static_cast<float>(transform->rotation.z))
+            .normalized();
+    pcl::transformPointCloud(points, points, to_image);
   }
-  cv::Mat out(static_cast<int>(cloud.height), static_cast<int>(cloud.width), CV_32FC3);
-  for (int v = 0; v < out.rows; ++v) {
-    const uint8_t* row = cloud.data.data() + static_cast<size_t>(v) * cloud.row_step;
-    auto* dst = out.ptr<cv::Vec3f>(v);
-    for (int u = 0; u < out.cols; ++u) {
-      const uint8_t* point = row + static_cast<size_t>(u) * cloud.point_step;
-      cv::Vec3f p;
-      for (int axis = 0; axis < 3; ++axis) std::memcpy(&p[axis], point + offsets[axis], sizeof(float));
-      // NaN propagates through the transform, so holes stay holes.
-      dst[u] = transform ? cv::Vec3f(r * p + t) : p;
-    }
-  }
-  return out;
+  if (factor < 2) return points;
+  // A depth camera's cloud at a fraction of the image resolution: each point covers a block. A
+  // PointXYZ is x, y, z and a padding float, so OpenCV resizes the points as a 4-channel image.
+  static_assert(sizeof(pcl::PointXYZ) == 4 * sizeof(float), "pcl::PointXYZ is x, y, z and one padding float");
+  pcl::PointCloud<pcl::PointXYZ> full(static_cast<uint32_t>(image_size.width), static_cast<uint32_t>(image_size.height));
+  full.header = points.header;
+  full.is_dense = points.is_dense;
+  const cv::Mat from(static_cast<int>(points.height), static_cast<int>(points.width), CV_32FC4, points.points.data());
+  cv::Mat to(image_size, CV_32FC4, full.points.data());
+  cv::resize(from, to, image_size, 0.0, 0.0, cv::INTER_NEAREST);
+  return full;
 }
 
 visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {

@@ -30,7 +30,6 @@
 #include <image_transport/image_transport.h>
 #include <message_filters/cache.h>
 #include <nodelet/nodelet.h>
-#include <opencv2/imgproc.hpp>
 #include <pluginlib/class_list_macros.hpp>
 #include <tf2_ros/buffer.h>
 #include <tf2_ros/message_filter.h>
@@ -55,6 +54,7 @@ using sensor_msgs::ImageConstPtr;
 using sensor_msgs::PointCloud2;
 using sensor_msgs::PointCloud2ConstPtr;
 using Transport = NodeletParameters::Transport;
+using Cloud = pcl::PointCloud<pcl::PointXYZ>;
 
 constexpr double kThrottle = 5.0;        // s between repeats of one kind of warning or error
 constexpr size_t kStatsWindow = 100;     // frames behind the rates and times in diagnostics
@@ -163,8 +163,8 @@ class DetectorNodelet : public nodelet::Nodelet {
   void Process(const ImageConstPtr& image);
   std::optional<CameraModel> CameraFor(const ros::Time& stamp, const cv::Size& size);
   PointCloud2ConstPtr NearestCloud(const ros::Time& stamp) const;
-  cv::Mat CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
-  void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const cv::Mat& cloud, const cv::Size& size);
+  Cloud CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
+  void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const Cloud& cloud);
   TagTracks UpdateTracks(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
                          const std::optional<geometry_msgs::TransformStamped>& to_output);
   void Publish(const ImageConstPtr& image, const ArucoTagArray& array, const std::vector<ArucoTag>& tags,
@@ -525,12 +525,12 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
 
   const cv::Size size = input.pixels.size();
   const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
-  cv::Mat points;
+  Cloud points;
   if (params_.use_point_cloud) {
     points = CloudFor(NearestCloud(header.stamp), header, size);
     ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
   }
-  for (auto& tag : tags) Measure(tag, camera, points, size);
+  for (auto& tag : tags) Measure(tag, camera, points);
   if (!points.empty() && !tags.empty() &&
       std::none_of(tags.begin(), tags.end(), [](const ArucoTag& tag) { return tag.cloud.valid; })) {
     ++counts_.clouds_without_depth;
@@ -585,8 +585,8 @@ PointCloud2ConstPtr DetectorNodelet::NearestCloud(const ros::Time& stamp) const 
   return nearest;
 }
 
-cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header,
-                                  const cv::Size& size) {
+Cloud DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header,
+                                const cv::Size& size) {
   if (!cloud || params_.pose_source == PoseSource::kPnp) return {};
   try {
     std::optional<geometry_msgs::TransformStamped> to_image;
@@ -595,19 +595,7 @@ cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_ms
       // waiting: the transform is usually static, and a frame without its cloud still gets PnP.
       to_image = tf_buffer_->lookupTransform(image_header.frame_id, cloud->header.frame_id, cloud->header.stamp);
     }
-    cv::Mat points = CloudToMat(*cloud, to_image ? &to_image->transform : nullptr);
-    if (points.size() != size) {
-      const int factor = points.cols > 0 ? size.width / points.cols : 0;
-      if (factor < 2 || points.cols * factor != size.width || points.rows * factor != size.height) {
-        throw Error("point cloud is " + std::to_string(points.cols) + "x" + std::to_string(points.rows) +
-                    " but the image is " + std::to_string(size.width) + "x" + std::to_string(size.height) +
-                    "; an organized cloud must match the image pixel for pixel or be it downscaled by a whole "
-                    "factor");
-      }
-      // A depth camera's cloud at a fraction of the image resolution: each point covers a block.
-      cv::resize(points, points, size, 0.0, 0.0, cv::INTER_NEAREST);
-    }
-    return points;
+    return CloudFromMessage(*cloud, size, to_image ? &to_image->transform : nullptr);
   } catch (const tf2::TransformException& e) {
     Warn("cloud tf", "point cloud not used (PnP alone): no transform " + image_header.frame_id + " <- " +
                          cloud->header.frame_id + " at the cloud's stamp: " + e.what());
@@ -618,11 +606,10 @@ cv::Mat DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_ms
   return {};
 }
 
-void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const cv::Mat& cloud,
-                              const cv::Size& size) {
+void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const Cloud& cloud) {
   try {
     if (camera) EstimatePoseFromPNP(*camera, tag);
-    if (!cloud.empty()) EstimatePoseFromPointCloud(cloud, size, tag, params_.cloud);
+    if (!cloud.empty()) EstimatePoseFromPointCloud(cloud, tag, params_.cloud);
   } catch (const std::exception& e) {
     Fail("pose", "tag " + std::to_string(tag.id) + ": " + e.what());
   }

@@ -11,6 +11,8 @@
 #include <geometry_msgs/TransformStamped.h>
 #include <image_geometry/pinhole_camera_model.h>
 #include <opencv2/core.hpp>
+#include <pcl/point_cloud.h>
+#include <pcl/point_types.h>
 #include <sensor_msgs/CameraInfo.h>
 #include <sensor_msgs/Image.h>
 #include <sensor_msgs/PointCloud2.h>
@@ -56,10 +58,13 @@ sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& e
                                      const std_msgs::Header& header);
 
 /// An organized PointCloud2 (float32 x, y, z fields at any offsets and point_step, little-endian)
-/// as a CV_32FC3 matrix of height x width, each point moved by `transform` when given (NaN points
-/// stay NaN). Throws on an unorganized cloud, missing or non-float32 x/y/z fields, big-endian data
-/// or a buffer shorter than its declared size.
-cv::Mat CloudToMat(const sensor_msgs::PointCloud2& cloud, const geometry_msgs::Transform* transform = nullptr);
+/// as a pcl::PointCloud<pcl::PointXYZ> of image_size (pcl::fromROSMsg), each point moved by
+/// `transform` when given (NaN points stay NaN). A cloud smaller than the image by a whole factor
+/// (a depth camera at a fraction of the image's resolution) is enlarged to it, each point covering
+/// its block. Throws on an unorganized cloud, missing or non-float32 x/y/z fields, fields beyond
+/// point_step, big-endian data, a buffer shorter than its declared size, or another size.
+pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& cloud, const cv::Size& image_size,
+                                                const geometry_msgs::Transform* transform = nullptr);
 
 /// The rviz view of a tag array: a DELETEALL first (so tags that disappear are cleared), then per
 /// tag with a pose a flat CUBE (side x side x 5 mm) at its pose and a TEXT_VIEW_FACING id label
