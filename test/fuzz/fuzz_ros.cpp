@@ -7,6 +7,7 @@
 #include <arucotag/ros/conversions.hpp>
 #include <arucotag/ros/image_input.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -75,9 +76,13 @@ void Cloud(std::uint8_t options, const std::uint8_t* data, std::size_t size) {
   transform.rotation.z = std::sqrt(0.5);
   transform.rotation.w = std::sqrt(0.5);
   try {
-    const cv::Mat points = arucotag::CloudToMat(cloud, (options & 1) ? &transform : nullptr);
-    arucotag::ArucoTag tag = TagIn(points.size());
-    arucotag::EstimatePoseFromPointCloud(points, points.size(), tag);
+    // The image the cloud goes with: the cloud's own size, or twice it (a half-resolution cloud).
+    const int factor = (options & 2) ? 2 : 1;
+    const cv::Size image_size(static_cast<int>(std::min<std::uint32_t>(cloud.width, 4096)) * factor,
+                              static_cast<int>(std::min<std::uint32_t>(cloud.height, 4096)) * factor);
+    const auto points = arucotag::CloudFromMessage(cloud, image_size, (options & 1) ? &transform : nullptr);
+    arucotag::ArucoTag tag = TagIn(image_size);
+    arucotag::EstimatePoseFromPointCloud(points, tag);
   } catch (const arucotag::Error&) {
   }
 }
