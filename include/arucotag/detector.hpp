@@ -49,8 +49,8 @@ struct DetectorConfig {
   double max_erroneous_bits_in_border_rate = 0.35;
   double min_otsu_std_dev = 5.0;
   double error_correction_rate = 0.6;
-  int corner_refinement_win_size = 5;
-  int corner_refinement_max_iterations = 30;
+  int corner_refinement_win_size = 5;         ///< px, 1-60
+  int corner_refinement_max_iterations = 30;  ///< 1-400
   double corner_refinement_min_accuracy = 0.01;
   bool detect_inverted_marker = false;  ///< not with corner_refinement kApriltag (OpenCV 4.6 crashes)
 

@@ -39,6 +39,12 @@ constexpr long long kMaxUnwarpedSide = 1440;
 // means "no limit"; past the bound, rate * side overflows the detectors' int perimeters
 // (fuzz_config: 1e300 in the fast path's search tasks).
 constexpr double kMaxPerimeterRate = 16.0;
+// Bounds on the corner refinement: twice what dynamic_reconfigure allows (30 px, 200 iterations).
+// The fast path's cornerSubPix allocates and sweeps a (2 * win_size + 1)^2 window every iteration
+// (fuzz_config: a window of 1.6e9 px threw std::length_error on a worker thread; large windows with
+// thousands of iterations took seconds a corner).
+constexpr int kMaxCornerWindow = 60;
+constexpr int kMaxCornerIterations = 400;
 
 void Require(bool ok, const char* field, const std::string& why) {
   if (!ok) {
@@ -94,8 +100,10 @@ void Validate(const DetectorConfig& c) {
   // without the contours the inverted-marker reading then uses; fuzz_config).
   Require(!(c.corner_refinement == CornerRefinement::kApriltag && c.detect_inverted_marker), "detect_inverted_marker",
           "cannot be combined with corner_refinement apriltag (OpenCV's detectMarkers crashes on it)");
-  Require(c.corner_refinement_win_size >= 1, "corner_refinement_win_size", "must be >= 1");
-  Require(c.corner_refinement_max_iterations >= 1, "corner_refinement_max_iterations", "must be >= 1");
+  Require(c.corner_refinement_win_size >= 1 && c.corner_refinement_win_size <= kMaxCornerWindow,
+          "corner_refinement_win_size", "must be 1-" + std::to_string(kMaxCornerWindow) + " px");
+  Require(c.corner_refinement_max_iterations >= 1 && c.corner_refinement_max_iterations <= kMaxCornerIterations,
+          "corner_refinement_max_iterations", "must be 1-" + std::to_string(kMaxCornerIterations));
   Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
           "corner_refinement_min_accuracy", "must be > 0");
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
