@@ -20,6 +20,8 @@ catkin_add_gtest(test_core
   test/core/test_synthetic.cpp
   test/core/test_tracker.cpp)
 target_link_libraries(test_core arucotag_sim arucotag_core ${GTEST_MAIN_LIBRARIES})
+# Some tests check the core's internal bounds directly (src/core/*.hpp).
+target_include_directories(test_core PRIVATE src/core)
 target_compile_definitions(test_core PRIVATE
   ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"
   ARUCOTAG_CORE_LIBRARY="$<TARGET_FILE:arucotag_core>"

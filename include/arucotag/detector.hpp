@@ -37,7 +37,7 @@ struct DetectorConfig {
   int adaptive_thresh_win_size_step = 10;  ///< at most 200 windows from min to max
   double adaptive_thresh_constant = 7.0;  ///< grey levels, -255 to 255
   double min_marker_perimeter_rate = 0.03;
-  double max_marker_perimeter_rate = 4.0;
+  double max_marker_perimeter_rate = 4.0;  ///< at most 16 (past 4 it changes nothing)
   double polygonal_approx_accuracy_rate = 0.03;
   double min_corner_distance_rate = 0.05;
   int min_distance_to_border = 3;
@@ -49,10 +49,10 @@ struct DetectorConfig {
   double max_erroneous_bits_in_border_rate = 0.35;
   double min_otsu_std_dev = 5.0;
   double error_correction_rate = 0.6;
-  int corner_refinement_win_size = 5;
-  int corner_refinement_max_iterations = 30;
+  int corner_refinement_win_size = 5;         ///< px, 1-60
+  int corner_refinement_max_iterations = 30;  ///< 1-400
   double corner_refinement_min_accuracy = 0.01;
-  bool detect_inverted_marker = false;
+  bool detect_inverted_marker = false;  ///< not with corner_refinement kApriltag (OpenCV 4.6 crashes)
 
   /// Multi-scale search (one threshold window per pyramid level, all cores) whose candidates are
   /// decoded on the full frame as cv::aruco decodes them and start refinement from cv::aruco's own

@@ -264,7 +264,8 @@ bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inve
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker) {
   if (grey.type() != CV_8UC1 || grey.cols < 2 || grey.rows < 2) return false;
-  if (!(MeanSide(candidate) < kSmallCandidateMaxSide)) return false;
+  const int cells = dictionary.markerSize + 2 * border_bits;
+  if (!SmallCandidateSide(MeanSide(candidate), cells)) return false;
   std::array<cv::Point2f, 4> quad = candidate;
   // Clockwise in the image (y down), as cv::aruco orders candidates: the cells are then read in the
   // marker's own orientation, not mirrored.
@@ -273,7 +274,6 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   if (!(std::fabs(turn) > 0.0)) return false;
   if (turn < 0.0) std::swap(quad[1], quad[3]);
   const cv::Matx33d h = SquareToQuad(quad);
-  const int cells = dictionary.markerSize + 2 * border_bits;
 
   // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
   // pixel off, pushed out into its quiet zone and located again from the grey levels.
@@ -321,13 +321,31 @@ std::array<cv::Point2f, 4> ToArray(const std::vector<cv::Point2f>& v) {
 
 }  // namespace
 
+std::vector<size_t> SmallCandidates(const std::vector<std::vector<cv::Point2f>>& rejected, int cells) {
+  std::vector<size_t> small;
+  std::vector<float> side(rejected.size(), 0.0f);
+  for (size_t i = 0; i < rejected.size(); ++i) {
+    if (rejected[i].size() != 4) continue;
+    side[i] = MeanSide(ToArray(rejected[i]));
+    if (SmallCandidateSide(side[i], cells)) small.push_back(i);
+  }
+  if (small.size() > kMaxSmallCandidates) {
+    // The biggest (the most pixels per cell, the likeliest to read), then back in cv::aruco's order.
+    std::nth_element(small.begin(), small.begin() + kMaxSmallCandidates, small.end(),
+                     [&side](size_t a, size_t b) { return side[a] > side[b] || (side[a] == side[b] && a < b); });
+    small.resize(kMaxSmallCandidates);
+    std::sort(small.begin(), small.end());
+  }
+  return small;
+}
+
 std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<std::vector<cv::Point2f>>& rejected,
                                         const std::vector<std::vector<cv::Point2f>>& found_corners,
                                         const std::vector<int>& found_ids, const cv::aruco::Dictionary& dictionary,
                                         const cv::aruco::DetectorParameters& parameters) {
   std::vector<SmallMarker> markers;
-  for (const auto& candidate : rejected) {
-    if (candidate.size() != 4) continue;
+  for (const size_t index : SmallCandidates(rejected, dictionary.markerSize + 2 * parameters.markerBorderBits)) {
+    const auto& candidate = rejected[index];
     SmallMarker marker;
     if (!DecodeSmall(grey, ToArray(candidate), dictionary, parameters.markerBorderBits,
                      parameters.detectInvertedMarker, marker)) {

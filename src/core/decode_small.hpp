@@ -20,6 +20,17 @@ namespace arucotag::internal {
 /// decoding has 5 px per cell or more and a rejection is a real one.
 constexpr float kSmallCandidateMaxSide = 30.0f;
 
+/// At most this many of a frame's rejected candidates get the second chance (DecodeRejected), the
+/// biggest first: each costs 0.05-0.2 ms, and a noisy or textured frame gives hundreds. The test
+/// frames (real photos, rendered scenes) give at most 46.
+constexpr size_t kMaxSmallCandidates = 96;
+
+/// Whether a candidate quad with this mean side (px) gets the second chance: under
+/// kSmallCandidateMaxSide, and at least one pixel per cell of a marker with `cells` cells a side
+/// (its bits and borders): below that no cell can be read (an 80x80 frame of equalized noise gave 75
+/// such quads of 1-3 px, of 77 candidates).
+inline bool SmallCandidateSide(float side, int cells) { return side >= cells && side < kSmallCandidateMaxSide; }
+
 /// A marker the small decoder identified.
 struct SmallMarker {
   int id = -1;
@@ -36,8 +47,7 @@ struct SmallMarker {
 /// inverted), a quiet zone around it, an exact dictionary match in one of the four rotations (no
 /// error correction) and a pattern that explains the pixels (PatternExplainsPixels).
 /// Samples outside the frame are skipped (Detect's candidates keep min_distance_to_border from it).
-/// Returns false for quads at or above kSmallCandidateMaxSide, or not a
-/// marker.
+/// Returns false for quads whose side SmallCandidateSide refuses, or not a marker.
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker);
 
@@ -48,7 +58,11 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
 bool PatternExplainsPixels(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int id, int border_bits,
                            const std::array<cv::Point2f, 4>& corners);
 
-/// The second chance of cv::aruco::detectMarkers' rejected candidates: every small one DecodeSmall
+/// The candidates of `rejected` DecodeRejected tries, as indices in their order: the quads whose mean
+/// side SmallCandidateSide accepts, at most kMaxSmallCandidates of them, the biggest.
+std::vector<size_t> SmallCandidates(const std::vector<std::vector<cv::Point2f>>& rejected, int cells);
+
+/// The second chance of cv::aruco::detectMarkers' rejected candidates: every SmallCandidates one DecodeSmall
 /// identifies, except where a marker of the same id was already found (`found`, or an earlier
 /// rejected candidate) within cv::aruco's min_marker_distance_rate. Corners are refined with
 /// cv::cornerSubPix when the parameters ask for CORNER_REFINE_SUBPIX, as cv::aruco refines its own.

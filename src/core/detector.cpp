@@ -34,6 +34,17 @@ constexpr int kMaxThresholdWindows = 200;
 // Bound on the side of a candidate unwarped for decoding (px): 8 times what dynamic_reconfigure
 // allows with a 7x7 dictionary and one border bit.
 constexpr long long kMaxUnwarpedSide = 1440;
+// Bound on the perimeter rates (perimeter / the frame's longer side): twice what dynamic_reconfigure
+// allows (8). A quad inside the frame is at most 4 longer sides around, so any rate past 4 already
+// means "no limit"; past the bound, rate * side overflows the detectors' int perimeters
+// (fuzz_config: 1e300 in the fast path's search tasks).
+constexpr double kMaxPerimeterRate = 16.0;
+// Bounds on the corner refinement: twice what dynamic_reconfigure allows (30 px, 200 iterations).
+// The fast path's cornerSubPix allocates and sweeps a (2 * win_size + 1)^2 window every iteration
+// (fuzz_config: a window of 1.6e9 px threw std::length_error on a worker thread; large windows with
+// thousands of iterations took seconds a corner).
+constexpr int kMaxCornerWindow = 60;
+constexpr int kMaxCornerIterations = 400;
 
 void Require(bool ok, const char* field, const std::string& why) {
   if (!ok) {
@@ -63,6 +74,10 @@ void Validate(const DetectorConfig& c) {
           "must be > 0");
   Require(Finite(c.max_marker_perimeter_rate) && c.max_marker_perimeter_rate > c.min_marker_perimeter_rate,
           "max_marker_perimeter_rate", "must be > min_marker_perimeter_rate");
+  // min_marker_perimeter_rate is below it, so bounded too.
+  Require(c.max_marker_perimeter_rate <= kMaxPerimeterRate, "max_marker_perimeter_rate",
+          "must be <= " + std::to_string(static_cast<int>(kMaxPerimeterRate)) +
+              " (past 4, the perimeter of the whole frame, it changes nothing)");
   Require(Finite(c.polygonal_approx_accuracy_rate) && c.polygonal_approx_accuracy_rate > 0.0,
           "polygonal_approx_accuracy_rate", "must be > 0");
   Require(Finite(c.min_corner_distance_rate) && c.min_corner_distance_rate >= 0.0, "min_corner_distance_rate",
@@ -81,8 +96,14 @@ void Validate(const DetectorConfig& c) {
   Require(Finite(c.min_otsu_std_dev) && c.min_otsu_std_dev >= 0.0, "min_otsu_std_dev", "must be >= 0");
   Require(Finite(c.error_correction_rate) && c.error_correction_rate >= 0.0 && c.error_correction_rate <= 1.0,
           "error_correction_rate", "must be in [0, 1]");
-  Require(c.corner_refinement_win_size >= 1, "corner_refinement_win_size", "must be >= 1");
-  Require(c.corner_refinement_max_iterations >= 1, "corner_refinement_max_iterations", "must be >= 1");
+  // OpenCV 4.6's detectMarkers dereferences null with both (CORNER_REFINE_APRILTAG finds candidates
+  // without the contours the inverted-marker reading then uses; fuzz_config).
+  Require(!(c.corner_refinement == CornerRefinement::kApriltag && c.detect_inverted_marker), "detect_inverted_marker",
+          "cannot be combined with corner_refinement apriltag (OpenCV's detectMarkers crashes on it)");
+  Require(c.corner_refinement_win_size >= 1 && c.corner_refinement_win_size <= kMaxCornerWindow,
+          "corner_refinement_win_size", "must be 1-" + std::to_string(kMaxCornerWindow) + " px");
+  Require(c.corner_refinement_max_iterations >= 1 && c.corner_refinement_max_iterations <= kMaxCornerIterations,
+          "corner_refinement_max_iterations", "must be 1-" + std::to_string(kMaxCornerIterations));
   Require(Finite(c.corner_refinement_min_accuracy) && c.corner_refinement_min_accuracy > 0.0,
           "corner_refinement_min_accuracy", "must be > 0");
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");

@@ -214,6 +214,51 @@ TEST(BadInput, OptionsOpenCvRefusesAreErrors) {
   EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("adaptive_thresh_constant"), std::string::npos);
 }
 
+// Found by fuzz_config (regress_max_perimeter_rate_1e300, regress_corner_window_1e9,
+// regress_corner_window_slow): the fast path's int perimeter bounds
+// overflowed; (regress_apriltag_inverted_null): OpenCV 4.6's detectMarkers dereferences null with
+// apriltag refinement and inverted markers, so the combination never reaches it.
+TEST(BadInput, DetectorConfigsOpenCvOrTheFastPathCannotRunAreRefused) {
+  DetectorConfig config;
+  config.max_marker_perimeter_rate = 1e300;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("max_marker_perimeter_rate"), std::string::npos);
+  config.max_marker_perimeter_rate = 16.5;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("max_marker_perimeter_rate"), std::string::npos);
+  config.min_marker_perimeter_rate = 1e300;  // bounded through max_marker_perimeter_rate
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }), "");
+  config = {};
+  config.corner_refinement = CornerRefinement::kApriltag;
+  config.detect_inverted_marker = true;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("detect_inverted_marker"), std::string::npos);
+  // The fast path's cornerSubPix window of
+  // 1.6e9 px threw std::length_error on a worker thread; large windows and iterations took seconds.
+  config = {};
+  config.corner_refinement_win_size = 1643643908;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("corner_refinement_win_size"), std::string::npos);
+  config = {};
+  config.corner_refinement_max_iterations = 100000;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("corner_refinement_max_iterations"), std::string::npos);
+  config.corner_refinement_win_size = 30;  // dynamic_reconfigure's largest
+  config.corner_refinement_max_iterations = 200;
+  EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
+  // dynamic_reconfigure's extremes stay accepted, and each of the two alone.
+  for (const double max_rate : {0.1, 8.0}) {
+    config = {};
+    config.min_marker_perimeter_rate = 0.001;
+    config.max_marker_perimeter_rate = max_rate;
+    EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "") << max_rate;
+  }
+  config.min_marker_perimeter_rate = 1.0;
+  config.max_marker_perimeter_rate = 8.0;
+  EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
+  config = {};
+  config.corner_refinement = CornerRefinement::kApriltag;
+  EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
+  config.corner_refinement = CornerRefinement::kEdge;
+  config.detect_inverted_marker = true;
+  EXPECT_EQ(ErrorOf([&] { Detector d(config); }), "");
+}
+
 // Found by fuzz_core (regress_draw_nan_corner): a NaN corner rounded to INT_MIN and overflowed.
 TEST(BadInput, NonFiniteOrFarCornersToDrawDetections) {
   cv::Mat image(48, 64, CV_8UC3, cv::Scalar::all(128));
