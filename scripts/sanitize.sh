@@ -9,7 +9,8 @@
 # package's executables from the first workspace that has them), which preloads the ASan and UBSan
 # runtimes into the manager alone. Our own executables link them; python, rosout, rosbag and rviz
 # run untouched. Leak checking is on in our executables and the manager; leaks of ROS's or
-# OpenCV's own would be listed, each with its reason, in test/sanitize/lsan.supp.
+# OpenCV's own would be listed, each with its reason, in test/sanitize/lsan.supp, and their other
+# errors (ASan suppresses only those raised in its interceptors) in test/sanitize/asan.supp.
 #
 # ASan writes its reports to files (log_path). UBSan, a runtime of its own beside ASan's, writes to
 # the process's stderr whatever log_path says, so the test output and the ROS logs are searched for
@@ -71,7 +72,7 @@ for exe in devel/lib/arucotag/* nodelet; do
   echo "detect_leaks=1" > "${options}/$(basename "${exe}").asan"
 done
 common="log_exe_name=1:abort_on_error=1"
-export ASAN_OPTIONS="detect_leaks=0:include_if_exists=${options}/%b.asan:log_path=${reports}/asan:${common}:check_initialization_order=1"
+export ASAN_OPTIONS="detect_leaks=0:include_if_exists=${options}/%b.asan:log_path=${reports}/asan:${common}:check_initialization_order=1:suppressions=${ARUCOTAG_SRC}/test/sanitize/asan.supp"
 export LSAN_OPTIONS="suppressions=${ARUCOTAG_SRC}/test/sanitize/lsan.supp:print_suppressions=0"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:${common}"
 
