@@ -14,7 +14,7 @@
 //                 runs it (tracked on sequences)
 //
 //   bench_detect --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100]
-//                [--reps 5] [--threads N] [--all-cores-reps N]
+//                [--reps 5] [--threads N] [--all-cores-reps N] [--sets 'a|b'] [--methods a,b]
 //
 // --threads sets OpenCV's threads (bench/run.sh: 1); AprilTag always runs on 1 thread.
 // --all-cores-reps N times the OpenCV-threaded detectors N more passes at all hardware threads.
@@ -241,7 +241,11 @@ struct Lineup {
   std::shared_ptr<std::vector<double>> pose_us;  // the pipeline's PnP times (us) in its last call
 };
 
-Lineup MakeLineup(const FrameSet& set) {
+bool Wanted(const std::vector<std::string>& keys, const std::string& key) {
+  return keys.empty() || std::find(keys.begin(), keys.end(), key) != keys.end();
+}
+
+Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
   Lineup l;
   const auto dictionary = cv::aruco::getPredefinedDictionary(DictionaryFromName(set.dictionary));
   const auto opencv_defaults = cv::aruco::DetectorParameters::create();
@@ -302,6 +306,11 @@ Lineup MakeLineup(const FrameSet& set) {
            },
            [pipeline] { pipeline->ResetTracking(); }, true};
   l.methods.push_back(p);
+  // --methods: the reference always stays, every ratio is to it.
+  l.methods.erase(std::remove_if(l.methods.begin() + 1, l.methods.end(),
+                                 [&](const Method& m) { return !Wanted(wanted, m.key); }),
+                  l.methods.end());
+  if (l.video && !Wanted(wanted, "ours_video")) l.video.reset();
 
   DetectorConfig full_config = l.config;
   full_config.fast_path = false;
@@ -379,7 +388,8 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
   }
 }
 
-SetResult RunSet(const FrameSet& set, int reps, int all_cores_reps, int threads) {
+SetResult RunSet(const FrameSet& set, int reps, int all_cores_reps, int threads,
+                 const std::vector<std::string>& methods) {
   SetResult r;
   r.name = set.name;
   r.dictionary = set.dictionary;
@@ -387,7 +397,7 @@ SetResult RunSet(const FrameSet& set, int reps, int all_cores_reps, int threads)
   r.sequence = set.sequence;
   r.exact_corners = set.exact_corners;
   r.size = std::to_string(set.frames[0].grey.cols) + "x" + std::to_string(set.frames[0].grey.rows);
-  Lineup lineup = MakeLineup(set);
+  Lineup lineup = MakeLineup(set, methods);
   for (const auto& m : lineup.methods) {
     r.order.push_back(m.key);
     r.methods[m.key].label = m.label;
@@ -486,13 +496,16 @@ int Main(int argc, char** argv) {
 
   std::vector<SetResult> results;
   for (const auto& set : sets) {
+    if (!Selected(options.sets, set.name)) continue;
     const double t0 = WallMs();
     const int reps = set.sequence ? std::max(1, options.reps / 2) : options.reps;
     const int all_cores_reps = set.sequence ? std::max(1, options.all_cores_reps / 2) : options.all_cores_reps;
-    results.push_back(RunSet(set, reps, options.all_cores_reps > 0 ? all_cores_reps : 0, threads));
+    results.push_back(
+        RunSet(set, reps, options.all_cores_reps > 0 ? all_cores_reps : 0, threads, options.methods));
     const auto& r = results.back();
     std::fprintf(stderr, "  %-36s opencv %7.2f  ours %7.2f ms median  (%.1f s)\n", set.name.c_str(),
-                 Percentile(r.methods.at("opencv").wall, 0.5), Percentile(r.methods.at("ours").wall, 0.5),
+                 Percentile(r.methods.at("opencv").wall, 0.5),
+                 r.methods.count("ours") ? Percentile(r.methods.at("ours").wall, 0.5) : NAN,
                  (WallMs() - t0) / 1e3);
   }
   WriteJson(results, options.json, options.reps, threads, options.all_cores_reps, load_before, DetectorConfig());

@@ -507,6 +507,25 @@ Score ScoreFrame(const Frame& frame, const std::vector<int>& ids,
   return score;
 }
 
+namespace {
+
+std::vector<std::string> Split(const std::string& list, char separator) {
+  std::vector<std::string> items;
+  std::stringstream in(list);
+  for (std::string item; std::getline(in, item, separator);) {
+    if (!item.empty()) items.push_back(item);
+  }
+  return items;
+}
+
+}  // namespace
+
+bool Selected(const std::vector<std::string>& filters, const std::string& name) {
+  if (filters.empty()) return true;
+  return std::any_of(filters.begin(), filters.end(),
+                     [&](const std::string& f) { return name.find(f) != std::string::npos; });
+}
+
 Options ParseOptions(int argc, char** argv, const std::string& default_json) {
   Options options;
   options.json = default_json;
@@ -524,6 +543,8 @@ Options ParseOptions(int argc, char** argv, const std::string& default_json) {
     else if (arg == "--reps") options.reps = std::stoi(next());
     else if (arg == "--threads") options.threads = std::stoi(next());
     else if (arg == "--all-cores-reps") options.all_cores_reps = std::stoi(next());
+    else if (arg == "--sets") options.sets = Split(next(), '|');
+    else if (arg == "--methods") options.methods = Split(next(), ',');
     else throw Error("unknown option " + arg);
   }
   return options;

@@ -54,7 +54,12 @@ struct Options {
   int reps = 5;                                       ///< --reps: timed passes
   int threads = -1;                                   ///< --threads: OpenCV threads (-1: OpenCV's choice)
   int all_cores_reps = 0;  ///< --all-cores-reps: extra passes at all cores for the OpenCV-threaded methods
+  std::vector<std::string> sets;     ///< --sets 'a|b': only the sets whose name contains one of these
+  std::vector<std::string> methods;  ///< --methods a,b: only these method keys (bench_detect; opencv always runs)
 };
+
+/// True when `filters` is empty or `name` contains one of them.
+bool Selected(const std::vector<std::string>& filters, const std::string& name);
 
 /// Parses the options above; throws arucotag::Error on an unknown option or a missing value.
 Options ParseOptions(int argc, char** argv, const std::string& default_json);

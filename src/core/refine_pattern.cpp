@@ -20,6 +20,15 @@
 #include <limits>
 #include <vector>
 
+// The fit's per-pixel loops (blur, normal equations) are float arithmetic the compiler vectorises:
+// on x86-64 GCC also builds them for AVX2 with FMA (8 floats a step, not SSE2's 4) and picks the
+// version the CPU supports when the library loads. Results agree to float rounding.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define ARUCOTAG_VECTOR_CLONES __attribute__((target_clones("arch=haswell", "default")))
+#else
+#define ARUCOTAG_VECTOR_CLONES
+#endif
+
 namespace arucotag {
 
 namespace {
@@ -55,8 +64,10 @@ constexpr double kConverged = 1e-3;  // px: smaller steps changed corners by < 0
 double Cross(const Vec2& a, const Vec2& b) { return a.x * b.y - a.y * b.x; }
 
 // Area of the pixel square [x0, x0 + 1] x [y0, y0 + 1] inside the convex quad q (orientation s = +1
-// when q's shoelace area is positive). Sutherland-Hodgman against the quad's four edges.
-double ClippedArea(const std::array<Vec2, 4>& q, double s, double x0, double y0) {
+// when q's shoelace area is positive). Sutherland-Hodgman against the quad's edges whose bit is set in
+// `crossing`: an edge with the whole square on its inner side cuts nothing (most boundary pixels
+// meet one edge).
+double ClippedArea(const std::array<Vec2, 4>& q, double s, double x0, double y0, unsigned crossing) {
   Vec2 a[12], b[12];
   int n = 4;
   a[0] = {x0, y0};
@@ -66,6 +77,7 @@ double ClippedArea(const std::array<Vec2, 4>& q, double s, double x0, double y0)
   Vec2* in = a;
   Vec2* out = b;
   for (int e = 0; e < 4 && n > 0; ++e) {
+    if (!(crossing & (1u << e))) continue;
     const Vec2 p = q[e], d = q[(e + 1) % 4] - q[e];
     int m = 0;
     for (int i = 0; i < n; ++i) {
@@ -239,7 +251,7 @@ class PatternFit {
 
   // The coverage (and, with `jac`, its corner derivatives) at every sample after a Gaussian blur of
   // the given variance: rows are blurred over the whole coverage area, columns only at the samples.
-  void Blurred(double variance, std::vector<float>& cover, std::vector<float>* jac) {
+  ARUCOTAG_VECTOR_CLONES void Blurred(double variance, std::vector<float>& cover, std::vector<float>* jac) {
     const Kernel kernel = BlurKernel(variance);
     std::array<float, 2 * kBlurRadius + 1> taps;
     for (int k = 0; k < 2 * kBlurRadius + 1; ++k) taps[k] = static_cast<float>(kernel.taps[k]);
@@ -268,7 +280,16 @@ class PatternFit {
     for (int y = 0; y < roi_.height; ++y) {
       for (int x = 0; x < roi_.width; ++x) {
         const float* source = &cover_[(static_cast<size_t>(y) * roi_.width + x) * kChannels];
-        if (std::all_of(source, source + 9, [](float v) { return v == 0.0f; })) continue;
+        float moves = 0.0f;  // any corner derivative (a plain loop: std::all_of is a call here)
+        for (int c = 1; c < 9; ++c) moves = std::max(moves, std::abs(source[c]));
+        if (moves == 0.0f) {
+          // No boundary through the pixel (outside every cell, or inside one): coverage only.
+          if (source[0] == 0.0f) continue;
+          for (int k = std::max(-r, -x); k <= std::min(r, roi_.width - 1 - x); ++k) {
+            rows_[(static_cast<size_t>(y) * roi_.width + x + k) * kChannels] += taps[k + kBlurRadius] * source[0];
+          }
+          continue;
+        }
         // A local copy: the compiler cannot otherwise rule out that `out` overlaps it, and does not
         // vectorise.
         alignas(16) float in[kChannels];
@@ -392,7 +413,8 @@ class PatternFit {
         }
         const double px = x - 0.5, py = y - 0.5;
         // Inside every edge with all four pixel corners: fully covered, no boundary to move.
-        bool inside = true, outside = false;
+        unsigned crossing = 0;
+        bool outside = false;
         for (int e = 0; e < 4 && !outside; ++e) {
           const Vec2 d = q[(e + 1) % 4] - q[e];
           int in = 0;
@@ -400,15 +422,15 @@ class PatternFit {
             const Vec2 corner(px + (c == 1 || c == 2), py + (c >= 2));
             in += s * Cross(d, corner - q[e]) >= 0;
           }
-          inside = inside && in == 4;
+          if (in != 4) crossing |= 1u << e;
           outside = in == 0;
         }
         if (outside) continue;
-        if (inside) {
+        if (!crossing) {
           out[0] += 1.0f;
           continue;
         }
-        out[0] += static_cast<float>(ClippedArea(q, s, px, py));
+        out[0] += static_cast<float>(ClippedArea(q, s, px, py, crossing));
         for (int e = 0; e < 4; ++e) {
           const Vec2 &a = q[e], &b = q[(e + 1) % 4];
           double t0, t1;
@@ -454,57 +476,69 @@ class PatternFit {
   std::vector<float>&cover_ = scratch_.cover, &rows_ = scratch_.rows;
 };
 
+// Sum of a[k] * b[k] in float with eight running sums, so the loop vectorises (a single running sum
+// is a dependency chain the compiler may not reorder).
+ARUCOTAG_VECTOR_CLONES float Dot(const float* a, const float* b, size_t n) {
+  float lanes[8] = {};
+  size_t k = 0;
+  for (; k + 8 <= n; k += 8) {
+    for (int i = 0; i < 8; ++i) lanes[i] += a[k + i] * b[k + i];
+  }
+  float sum = 0.0f;
+  for (; k < n; ++k) sum += a[k] * b[k];
+  for (float lane : lanes) sum += lane;
+  return sum;
+}
+
 // Cost of the model at `params` and, with jtj/jtr, its Huber-weighted normal equations; with
 // `outliers`, the share of pixels the model misses by more than a quarter of its contrast. Per-pixel
 // work is in float (sums of a few thousand terms; the step it gives is exact to far below 0.001 px).
+// The Jacobian is kept by columns, each pixel's row scaled by the square root of its Huber weight,
+// so that J^T W J and J^T W r are dot products of whole columns.
 double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<double, kParams, kParams>* jtj,
               cv::Matx<double, kParams, 1>* jtr, double* outliers = nullptr) {
   std::array<Vec2, 4> corners;
   for (int i = 0; i < 4; ++i) corners[i] = {params[2 * i], params[2 * i + 1]};
-  thread_local std::vector<float> cover, jac, wider;
+  thread_local std::vector<float> cover, jac, wider, columns;
   fit.Cover(corners);
   fit.Blurred(params[kBlur], cover, jtj ? &jac : nullptr);
   // The blur derivative by a forward difference: the sampled kernel has no simple closed form.
   const double blur_step = 0.02 + 0.02 * params[kBlur];
   if (jtj) fit.Blurred(params[kBlur] + blur_step, wider, nullptr);
-  // Rows padded to 16 floats so the accumulation vectorises.
-  constexpr int kPadded = 16;
-  alignas(16) float normal[kParams][kPadded] = {};
-  double rhs[kParams] = {};
+  const auto& samples = fit.samples();
+  const size_t n = samples.size();
+  // Columns 0..12: the parameters' derivatives; column 13: the residuals.
+  constexpr int kResidual = kParams;
+  if (jtj) columns.resize(n * (kParams + 1));
   double cost = 0.0;
   int missed = 0;
   const float contrast = static_cast<float>(params[9]), quarter = 0.25f * std::abs(contrast);
   const float blur_scale = static_cast<float>(params[9] / blur_step);
-  const auto& samples = fit.samples();
-  for (size_t k = 0; k < samples.size(); ++k) {
+  for (size_t k = 0; k < n; ++k) {
     const double dx = samples[k].x - fit.origin().x, dy = samples[k].y - fit.origin().y;
     const double model = params[8] + params[9] * cover[k] + params[10] * dx + params[11] * dy;
     const double r = samples[k].grey - model;
     // Huber: pixels the pattern cannot explain (a glint, an occluder) count linearly.
     const double a = std::abs(r);
-    const double w = a <= scale ? 1.0 : scale / a;
     cost += a <= scale ? 0.5 * r * r : scale * (a - 0.5 * scale);
     missed += a > quarter;
     if (!jtj) continue;
-    alignas(16) float j[kPadded] = {};
-    for (int p = 0; p < 8; ++p) j[p] = contrast * jac[k * 8 + p];
-    j[8] = 1.0f;
-    j[9] = cover[k];
-    j[10] = static_cast<float>(dx);
-    j[11] = static_cast<float>(dy);
-    j[kBlur] = blur_scale * (wider[k] - cover[k]);
-    const float wf = static_cast<float>(w);
-    for (int p = 0; p < kParams; ++p) {
-      const float wp = wf * j[p];
-      rhs[p] += wp * r;
-      for (int q = 0; q < kPadded; ++q) normal[p][q] += wp * j[q];
-    }
+    const float root = a <= scale ? 1.0f : static_cast<float>(std::sqrt(scale / a));
+    float* column = columns.data() + k;
+    for (int p = 0; p < 8; ++p) column[p * n] = root * contrast * jac[k * 8 + p];
+    column[8 * n] = root;
+    column[9 * n] = root * cover[k];
+    column[10 * n] = root * static_cast<float>(dx);
+    column[11 * n] = root * static_cast<float>(dy);
+    column[kBlur * n] = root * blur_scale * (wider[k] - cover[k]);
+    column[kResidual * n] = root * static_cast<float>(r);
   }
-  if (outliers) *outliers = static_cast<double>(missed) / static_cast<double>(samples.size());
+  if (outliers) *outliers = static_cast<double>(missed) / static_cast<double>(n);
   if (jtj) {
     for (int p = 0; p < kParams; ++p) {
-      (*jtr)(p) = rhs[p];
-      for (int q = 0; q < kParams; ++q) (*jtj)(p, q) = 0.5 * (normal[p][q] + normal[q][p]);
+      const float* a = columns.data() + p * n;
+      (*jtr)(p) = Dot(a, columns.data() + kResidual * n, n);
+      for (int q = p; q < kParams; ++q) (*jtj)(p, q) = (*jtj)(q, p) = Dot(a, columns.data() + q * n, n);
     }
   }
   return cost;
