@@ -93,6 +93,7 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
                         const geometry_msgs::TransformStamped* to_output) {
   ArucoTagArray array;
   array.header = header;
+  array.camera_frame_id = header.frame_id;
   if (to_output) array.header.frame_id = to_output->header.frame_id;
   array.tags.reserve(tags.size());
   for (const auto& tag : tags) {
@@ -269,12 +270,17 @@ pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& 
   return full;
 }
 
-visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
+visualization_msgs::MarkerArray ClearedMarkers(const std_msgs::Header& header) {
   visualization_msgs::MarkerArray markers;
   visualization_msgs::Marker clear;
-  clear.header = tags.header;
+  clear.header = header;
   clear.action = visualization_msgs::Marker::DELETEALL;
   markers.markers.push_back(clear);
+  return markers;
+}
+
+visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
+  visualization_msgs::MarkerArray markers = ClearedMarkers(tags.header);
   int next_id = 0;
   for (const auto& tag : tags.tags) {
     if (tag.pose_source == ArucoTagMsg::NONE) continue;

@@ -625,18 +625,7 @@ TagTracks DetectorNodelet::UpdateTracks(const std::vector<ArucoTag>& tags, const
   tracker_->Update(header.frame_id, header.stamp.toSec(), MeasurementsInFrame(tags, rotation, translation));
   std_msgs::Header frame = header;
   if (!params_.output_frame.empty()) frame.frame_id = params_.output_frame;
-  TagTracks tracks = ToMessage(tracker_->Tracks(), frame, params_.tracker.filter);
-  // The core keeps stamps as double seconds (a fraction of a microsecond off today's stamps): give
-  // each track its image's exact stamp back.
-  std::map<uint32_t, ros::Time> last_seen;
-  for (size_t i = 0; i < tracks.tracks.size(); ++i) {
-    TagTrack& track = tracks.tracks[i];
-    const auto known = last_seen_.find(track.track_id);
-    const bool hit_now = tracker_->Tracks()[i].last_seen == header.stamp.toSec() || known == last_seen_.end();
-    track.last_seen = last_seen[track.track_id] = hit_now ? header.stamp : known->second;
-  }
-  last_seen_.swap(last_seen);
-  return tracks;
+  return ToMessage(*tracker_, frame, header.stamp, last_seen_);
 }
 
 void DetectorNodelet::Publish(const ImageConstPtr& image, const ArucoTagArray& array,
@@ -668,28 +657,23 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tra
   if (array.header.frame_id.empty()) return;  // Process reported it
   // A post shows one id on several faces; TF gets only the best-measured face per id, or with
   // ~tf_from_validated_tracks the most-seen validated track per id (its filtered pose).
-  std::map<int, const ArucoTagMsg*> best;
-  std::map<int, ArucoTagMsg> validated;  // id -> the pose of its most-seen validated track
+  std::map<int, geometry_msgs::Pose> best;
   if (params_.tf_from_validated_tracks) {
-    std::map<int, uint32_t> hits;
-    for (const auto& track : tracks.tracks) {
-      if (!track.validated || track.hits <= hits[track.id]) continue;
-      hits[track.id] = track.hits;
-      validated[track.id].pose = track.pose.pose;
-    }
-    for (const auto& [id, pose] : validated) best[id] = &pose;
+    best = ValidatedPoses(tracks);
   } else {
+    std::map<int, const ArucoTagMsg*> chosen;
     for (const auto& tag : array.tags) {
       if (tag.pose_source == ArucoTagMsg::NONE) continue;
-      const ArucoTagMsg*& chosen = best[tag.id];
-      if (!chosen || BetterMeasured(tag, *chosen)) chosen = &tag;
+      const ArucoTagMsg*& current = chosen[tag.id];
+      if (!current || BetterMeasured(tag, *current)) current = &tag;
     }
+    for (const auto& [id, tag] : chosen) best[id] = tag->pose;
   }
   std_msgs::Header header = array.header;
   if (header.stamp.isZero()) header.stamp = ros::Time::now();
   const std::string prefix = ChildFramePrefix(array.header.frame_id);
   std::vector<geometry_msgs::TransformStamped> transforms;
-  for (const auto& [id, tag] : best) {
+  for (const auto& [id, pose] : best) {
     const std::string child = prefix + std::to_string(id);
     ros::Time& last = last_tf_stamp_[child];
     if (last == header.stamp) {  // a repeated image stamp: listeners would reject it as TF_REPEATED_DATA
@@ -697,7 +681,7 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tra
       continue;
     }
     last = header.stamp;
-    transforms.push_back(ToTransform(*tag, header, child));
+    transforms.push_back(ToTransform(pose, header, child));
   }
   if (!transforms.empty()) tf_broadcaster_->sendTransform(transforms);
 }
