@@ -14,7 +14,8 @@
 namespace arucotag {
 namespace {
 
-TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
+// Id 5 with a PnP pose 3 m ahead and a covariance with a range-rotation correlation.
+ArucoTag PnpTag() {
   ArucoTag tag;
   tag.id = 5;
   tag.pose_source = PoseSource::kPnp;
@@ -24,6 +25,11 @@ TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
   const double diagonal[6] = {1e-6, 4e-6, 9e-4, 1e-4, 4e-4, 1e-5};
   for (int i = 0; i < 6; ++i) tag.covariance(i, i) = diagonal[i];
   tag.covariance(2, 4) = tag.covariance(4, 2) = 7e-6;
+  return tag;
+}
+
+TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
+  const ArucoTag tag = PnpTag();
 
   geometry_msgs::TransformStamped to_odom;
   to_odom.header.frame_id = "odom";
@@ -57,15 +63,7 @@ TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
 // The fuser's measurements, read back from a detector's tags in ~output_frame, are the detector's own
 // tracker's (MeasurementsInFrame): same pose, same covariance; a tag without a pose gives none.
 TEST(Tracks, MeasurementsFromMessageAreTheDetectorsOwn) {
-  ArucoTag seen;
-  seen.id = 5;
-  seen.pose_source = PoseSource::kPnp;
-  seen.rvec = cv::Vec3d(0.3, -0.2, 0.1);
-  seen.tvec = cv::Vec3d(0.4, -0.3, 3.0);
-  seen.covariance = PoseCovariance::zeros();
-  const double diagonal[6] = {1e-6, 4e-6, 9e-4, 1e-4, 4e-4, 1e-5};
-  for (int i = 0; i < 6; ++i) seen.covariance(i, i) = diagonal[i];
-  seen.covariance(2, 4) = seen.covariance(4, 2) = 7e-6;
+  const ArucoTag seen = PnpTag();
   ArucoTag corners_only;
   corners_only.id = 9;
 
