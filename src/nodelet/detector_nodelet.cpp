@@ -1,5 +1,5 @@
 // The detector nodelet: subscribes image (+ camera_info, + points), runs the arucotag core, publishes
-// tags, tracks, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
+// tags, tracks, bundles, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
 // parameters.cpp; this file is wiring. Every callback runs on the nodelet's single-threaded queue,
 // except the connect callbacks (publisher threads), which only touch the subscriptions.
 //
@@ -208,7 +208,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::map<const Image*, Clock::time_point> arrived_;          // arrival of images not yet processed
 
   // Outputs.
-  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_, bundles_pub_;
+  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_, bundles_pub_, bundle_markers_pub_;
   image_transport::Publisher overlay_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
@@ -313,7 +313,10 @@ void DetectorNodelet::Start() {
   tracks_pub_ = nh_.advertise<TagTracks>("tracks", 10, connect, connect);
   track_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("track_markers", 1, connect, connect);
   overlay_pub_ = it_->advertise("overlay", 1, connect_image, connect_image);
-  if (!params_.bundles.empty()) bundles_pub_ = nh_.advertise<BundleArray>("bundles", 10, connect, connect);
+  if (!params_.bundles.empty()) {
+    bundles_pub_ = nh_.advertise<BundleArray>("bundles", 10, connect, connect);
+    bundle_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("bundle_markers", 1, connect, connect);
+  }
   if (params_.publish_tf) Subscribe();  // TF has no subscriber count: it always counts as listening
   const char* transport = params_.transport == Transport::kRaw          ? "raw"
                           : params_.transport == Transport::kCompressed ? "compressed"
@@ -334,7 +337,7 @@ void DetectorNodelet::ConnectCallback() {
   const bool listening = params_.publish_tf || tags_pub_.getNumSubscribers() > 0 ||
                          markers_pub_.getNumSubscribers() > 0 || overlay_pub_.getNumSubscribers() > 0 ||
                          tracks_pub_.getNumSubscribers() > 0 || track_markers_pub_.getNumSubscribers() > 0 ||
-                         bundles_pub_.getNumSubscribers() > 0;
+                         bundles_pub_.getNumSubscribers() > 0 || bundle_markers_pub_.getNumSubscribers() > 0;
   if (listening && !subscribed_) {
     Subscribe();
   } else if (!listening && subscribed_) {
@@ -705,6 +708,7 @@ void DetectorNodelet::PublishBundles(const std_msgs::Header& header, const Camer
   }
   const BundleArray array = ToMessage(poses, children, header, to_output);
   bundles_pub_.publish(array);
+  if (bundle_markers_pub_.getNumSubscribers() > 0) bundle_markers_pub_.publish(ToBundleMarkers(array, params_.bundles));
   if (!params_.publish_tf || array.header.frame_id.empty()) return;
   std_msgs::Header parent = array.header;
   if (parent.stamp.isZero()) parent.stamp = ros::Time::now();

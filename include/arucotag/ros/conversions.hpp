@@ -76,6 +76,12 @@ visualization_msgs::MarkerArray ClearedMarkers(const std_msgs::Header& header);
 /// just above it. Stamp and frame are the array's.
 visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags);
 
+/// The rviz view of the bundles of one frame: a DELETEALL first, then per bundle in view every member
+/// of its configuration in `bundles` (found by name) as a flat CUBE at the bundle pose times the
+/// member's pose (faces in view and out of view alike: the whole object where it stands), and a
+/// TEXT_VIEW_FACING label with the bundle's name above the bundle origin. Stamp and frame are the array's.
+visualization_msgs::MarkerArray ToBundleMarkers(const BundleArray& array, const std::vector<MarkerBundle>& bundles);
+
 /// The TF of one tag: parent = header.frame_id, child = `child_frame`, stamp = header.stamp.
 geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,
                                             const std::string& child_frame);
