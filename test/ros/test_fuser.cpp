@@ -14,6 +14,7 @@
 #include <vector>
 
 #include <arucotag/TagTracks.h>
+#include <nodelet/NodeletList.h>
 #include <opencv2/core.hpp>
 #include <rosgraph_msgs/Log.h>
 #include <tf2/LinearMath/Matrix3x3.h>
@@ -265,6 +266,25 @@ TEST(TrackFuser, RefusesTagsInAnotherFrame) {
     EXPECT_TRUE(track.id == 245 || track.id == 246) << "track of refused id " << track.id;
     EXPECT_EQ(track.last_seen, stamp);
   }
+}
+
+// A fuser loaded without ~inputs into the same manager stays inert: loaded, nothing advertised,
+// while the good fuser beside it answers (the other tests).
+TEST(TrackFuser, WithoutInputsItStaysInertAndTheManagerRuns) {
+  ASSERT_TRUE(Ready());
+  nodelet::NodeletList list;
+  ASSERT_TRUE(WaitUntil([&] {
+    return ros::service::call("/aruco_manager/list", list) &&
+           std::count(list.response.nodelets.begin(), list.response.nodelets.end(), "/bad/fuser") == 1;
+  }, 30.0)) << "the bad fuser must be loaded (onInit returned) without taking the manager down";
+  ros::master::V_TopicInfo topics;
+  ASSERT_TRUE(ros::master::getTopics(topics));
+  const auto advertised = [&topics](const std::string& name) {
+    return std::any_of(topics.begin(), topics.end(), [&](const ros::master::TopicInfo& t) { return t.name == name; });
+  };
+  EXPECT_TRUE(advertised("/aruco_fused/tracks"));
+  EXPECT_FALSE(advertised("/bad/tracks"));
+  EXPECT_FALSE(advertised("/bad/track_markers"));
 }
 
 }  // namespace
