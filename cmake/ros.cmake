@@ -1,4 +1,4 @@
-# ROS layer: the detector nodelet (one library, image_pipeline style), the executable that hosts it
+# ROS layer: the detector and track fuser nodelets (one library, image_pipeline style), the executable that hosts it
 # without a manager, and the rostests that drive both with rendered frames.
 # Generated headers (messages, dynamic_reconfigure) live in the devel space.
 set(ARUCOTAG_ROS_INCLUDES ${CATKIN_DEVEL_PREFIX}/include)
@@ -8,6 +8,7 @@ add_library(arucotag_nodelet
   src/nodelet/detector_nodelet.cpp
   src/nodelet/image_input.cpp
   src/nodelet/parameters.cpp
+  src/nodelet/track_fuser_nodelet.cpp
   src/nodelet/tracks.cpp)
 target_include_directories(arucotag_nodelet PRIVATE ${ARUCOTAG_ROS_INCLUDES})
 target_include_directories(arucotag_nodelet SYSTEM PRIVATE ${catkin_INCLUDE_DIRS} ${pcl_conversions_INCLUDE_DIRS})
@@ -72,11 +73,15 @@ if(CATKIN_ENABLE_TESTING)
   target_link_libraries(test_ros_bundles arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
   add_dependencies(test_ros_bundles arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
 
-  # Stamp patterns of real drivers and bags, on the real photos in test/data.
-  add_rostest_gtest(test_ros_stamps test/ros/stamps.test test/ros/test_stamps.cpp test/ros/rig.cpp)
-  target_include_directories(test_ros_stamps PRIVATE ${ARUCOTAG_ROS_INCLUDES})
-  target_include_directories(test_ros_stamps SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
-  target_link_libraries(test_ros_stamps arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
-  target_compile_definitions(test_ros_stamps PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
-  add_dependencies(test_ros_stamps arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+  # On the real photos in test/data: stamp patterns of real drivers and bags (stamps), and two
+  # cameras' detectors fused by arucotag/TrackFuser (fuser).
+  foreach(name stamps fuser)
+    add_rostest_gtest(test_ros_${name} test/ros/${name}.test test/ros/test_${name}.cpp test/ros/photos.cpp
+      test/ros/rig.cpp)
+    target_include_directories(test_ros_${name} PRIVATE ${ARUCOTAG_ROS_INCLUDES})
+    target_include_directories(test_ros_${name} SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
+    target_link_libraries(test_ros_${name} arucotag_sim ${catkin_LIBRARIES} ${GTEST_LIBRARIES})
+    target_compile_definitions(test_ros_${name} PRIVATE ARUCOTAG_TEST_DATA="${CMAKE_CURRENT_SOURCE_DIR}/test/data")
+    add_dependencies(test_ros_${name} arucotag_nodelet ${PROJECT_NAME}_generate_messages_cpp)
+  endforeach()
 endif()

@@ -3,10 +3,11 @@
 # screenshot of the whole rviz window once playback is over (rviz keeps the last frame: the clock
 # stops with the bag). Exits non-zero when rviz dies or logs an error, or the screenshot fails.
 #
-#   scripts/rviz_screenshot.sh [--bag FILE] [--out PNG] [--start S] [--duration S]
+#   scripts/rviz_screenshot.sh [--bag FILE] [--out PNG] [--start S] [--duration S] [--bundles YAML]
 #
-# Defaults: the sample recording ($ARUCOTAG_BUILD/sample/sample.bag), output/rviz/rviz.png, and the
-# stretch 6.5-10 s where the rover closes in on the post and sees two of its faces.
+# Defaults: the sample recording ($ARUCOTAG_BUILD/sample/sample.bag), output/rviz/rviz.png, the
+# stretch 6.5-10 s where the rover closes in on the post and sees two of its faces, and the sample's
+# post as a bundle (config/sample_bundles.yaml; --bundles "" for none).
 set -euo pipefail
 source "$(dirname "$0")/env.sh"
 
@@ -14,6 +15,7 @@ BAG="${ARUCOTAG_BUILD}/sample/sample.bag"
 OUT="${ARUCOTAG_SRC}/output/rviz/rviz.png"
 START=6.5
 DURATION=3.5
+BUNDLES="${ARUCOTAG_SRC}/config/sample_bundles.yaml"
 INNER=false
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -21,8 +23,9 @@ while [ $# -gt 0 ]; do
     --out) OUT="$2"; shift 2 ;;
     --start) START="$2"; shift 2 ;;
     --duration) DURATION="$2"; shift 2 ;;
+    --bundles) BUNDLES="$2"; shift 2 ;;
     --inner) INNER=true; shift ;;
-    *) echo "usage: $0 [--bag FILE] [--out PNG] [--start S] [--duration S]" >&2; exit 2 ;;
+    *) echo "usage: $0 [--bag FILE] [--out PNG] [--start S] [--duration S] [--bundles YAML]" >&2; exit 2 ;;
   esac
 done
 BAG="$(cd "$(dirname "${BAG}")" && pwd)/$(basename "${BAG}")"
@@ -34,7 +37,7 @@ if [ "${INNER}" = false ]; then
   [ -f "${BAG}" ] || { echo "rviz_screenshot: no bag at ${BAG} (scripts/demo.sh makes the sample)" >&2; exit 1; }
   # A fresh X server of the window's size; -a picks a free display number.
   exec xvfb-run -a -s "-screen 0 1280x800x24" bash "$0" --inner --bag "${BAG}" --out "${OUT}" \
-    --start "${START}" --duration "${DURATION}"
+    --start "${START}" --duration "${DURATION}" --bundles "${BUNDLES}"
 fi
 
 arucotag_source_devel
@@ -60,7 +63,7 @@ for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
 start_replay() {
   # The loops below read roslaunch's log as it runs: Python must not buffer it until exit.
   PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
-    rate_control:=true quiet:=true paused:=true > "${LOG}" 2>&1 &
+    bundles:="${BUNDLES}" rate_control:=true quiet:=true paused:=true > "${LOG}" 2>&1 &
   launch=$!
   pids=("${launch}" "${pids[@]}")
   for _ in $(seq 120); do

@@ -84,7 +84,7 @@ struct Track {
   int flips = 0;                     ///< detections taken as their other planar solution (a flip undone)
   int restarts = 0;                  ///< times the filter was restarted from a detection it kept refusing
   double first_seen = 0.0;           ///< s, stamp of the first hit
-  double last_seen = 0.0;            ///< s, stamp of the last hit
+  double last_seen = 0.0;            ///< s, latest stamp of its hits (a camera's older frame does not set it back)
   double age = 0.0;                  ///< s, from first_seen to the tracker's latest stamp
   int frames_to_validate = 0;        ///< frames of its cameras from the first hit to validation (0 until validated)
   cv::Vec3d position;                ///< filtered (or last) marker centre (m)

@@ -166,7 +166,9 @@ double TagTracker::Distance(const Track& track, const TrackMeasurement& m) const
 void TagTracker::Hit(Track& track, const std::string& camera, double stamp) {
   ++track.hits;
   track.misses = 0;
-  track.last_seen = stamp;
+  // Cameras' frames interleave: one stamped before the track's latest hit must not set it back
+  // (max_unseen would then drop the track early).
+  track.last_seen = std::max(track.last_seen, stamp);
   if (!Contains(track.cameras, camera)) track.cameras.push_back(camera);
   track.recent_hits.push_back(stamp);
   while (!track.recent_hits.empty() && track.recent_hits.front() < stamp - config_.validation_window) {

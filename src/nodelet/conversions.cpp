@@ -49,6 +49,31 @@ void RotateCovariance(const geometry_msgs::Quaternion& q, boost::array<double, 3
   std::copy(moved.val, moved.val + 36, covariance.begin());
 }
 
+std_msgs::ColorRGBA Rgba(float r, float g, float b, float a) {
+  std_msgs::ColorRGBA color;
+  color.r = r;
+  color.g = g;
+  color.b = b;
+  color.a = a;
+  return color;
+}
+
+// A printed marker in rviz: a flat CUBE, side x side x kMarkerThickness, at `pose`.
+visualization_msgs::Marker Sheet(const std_msgs::Header& header, const char* ns, int id,
+                                 const geometry_msgs::Pose& pose, double side, const std_msgs::ColorRGBA& color) {
+  visualization_msgs::Marker sheet;
+  sheet.header = header;
+  sheet.ns = ns;
+  sheet.id = id;
+  sheet.type = visualization_msgs::Marker::CUBE;
+  sheet.action = visualization_msgs::Marker::ADD;
+  sheet.pose = pose;
+  sheet.scale.x = sheet.scale.y = side;
+  sheet.scale.z = kMarkerThickness;
+  sheet.color = color;
+  return sheet;
+}
+
 }  // namespace
 
 geometry_msgs::Pose ToPose(const cv::Vec3d& rvec, const cv::Vec3d& tvec) {
@@ -93,6 +118,7 @@ ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Heade
                         const geometry_msgs::TransformStamped* to_output) {
   ArucoTagArray array;
   array.header = header;
+  array.camera_frame_id = header.frame_id;
   if (to_output) array.header.frame_id = to_output->header.frame_id;
   array.tags.reserve(tags.size());
   for (const auto& tag : tags) {
@@ -269,27 +295,22 @@ pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& 
   return full;
 }
 
-visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
+visualization_msgs::MarkerArray ClearedMarkers(const std_msgs::Header& header) {
   visualization_msgs::MarkerArray markers;
   visualization_msgs::Marker clear;
-  clear.header = tags.header;
+  clear.header = header;
   clear.action = visualization_msgs::Marker::DELETEALL;
   markers.markers.push_back(clear);
+  return markers;
+}
+
+visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
+  visualization_msgs::MarkerArray markers = ClearedMarkers(tags.header);
   int next_id = 0;
   for (const auto& tag : tags.tags) {
     if (tag.pose_source == ArucoTagMsg::NONE) continue;
-    visualization_msgs::Marker box;
-    box.header = tags.header;
-    box.ns = "aruco_tags";
-    box.id = next_id++;
-    box.type = visualization_msgs::Marker::CUBE;
-    box.action = visualization_msgs::Marker::ADD;
-    box.pose = tag.pose;
-    box.scale.x = box.scale.y = tag.side_length;
-    box.scale.z = kMarkerThickness;
-    box.color.g = 0.8f;
-    box.color.b = 0.2f;
-    box.color.a = 0.8f;
+    const visualization_msgs::Marker box =
+        Sheet(tags.header, "aruco_tags", next_id++, tag.pose, tag.side_length, Rgba(0.0f, 0.8f, 0.2f, 0.8f));
     markers.markers.push_back(box);
 
     visualization_msgs::Marker label = box;
@@ -306,6 +327,44 @@ visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags) {
     label.scale.x = label.scale.y = 0.0;
     label.scale.z = std::max(0.05, 0.4 * tag.side_length);
     label.color.r = label.color.g = label.color.b = label.color.a = 1.0f;
+    markers.markers.push_back(label);
+  }
+  return markers;
+}
+
+visualization_msgs::MarkerArray ToBundleMarkers(const BundleArray& array, const std::vector<MarkerBundle>& bundles) {
+  visualization_msgs::MarkerArray markers = ClearedMarkers(array.header);
+  int next_id = 0;
+  for (const auto& seen : array.bundles) {
+    const auto config = std::find_if(bundles.begin(), bundles.end(),
+                                     [&seen](const MarkerBundle& b) { return b.name == seen.name; });
+    if (config == bundles.end()) continue;
+    tf2::Transform bundle;
+    tf2::fromMsg(seen.pose.pose, bundle);
+    double top = 0.0;  // m, the highest face centre above the origin along the bundle's z
+    for (const auto& member : config->members) {
+      const cv::Matx33d& r = member.rotation;
+      const tf2::Transform in_bundle(
+          tf2::Matrix3x3(r(0, 0), r(0, 1), r(0, 2), r(1, 0), r(1, 1), r(1, 2), r(2, 0), r(2, 1), r(2, 2)),
+          tf2::Vector3(member.position[0], member.position[1], member.position[2]));
+      geometry_msgs::Pose pose;
+      tf2::toMsg(bundle * in_bundle, pose);
+      markers.markers.push_back(
+          Sheet(array.header, "aruco_bundles", next_id++, pose, member.side_length, Rgba(0.55f, 0.35f, 1.0f, 0.85f)));
+      top = std::max(top, member.position[2] + 0.5 * member.side_length);
+    }
+    visualization_msgs::Marker label;
+    label.header = array.header;
+    label.ns = "aruco_bundle_labels";
+    label.id = next_id++;
+    label.type = visualization_msgs::Marker::TEXT_VIEW_FACING;
+    label.action = visualization_msgs::Marker::ADD;
+    tf2::toMsg(bundle * tf2::Transform(tf2::Quaternion::getIdentity(), tf2::Vector3(0.0, 0.0, top + 0.1)), label.pose);
+    label.pose.orientation = geometry_msgs::Quaternion();
+    label.pose.orientation.w = 1.0;
+    label.scale.z = 0.1;
+    label.color.r = label.color.g = label.color.b = label.color.a = 1.0f;
+    label.text = seen.name;
     markers.markers.push_back(label);
   }
   return markers;

@@ -1,5 +1,5 @@
 // The detector nodelet: subscribes image (+ camera_info, + points), runs the arucotag core, publishes
-// tags, tracks, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
+// tags, tracks, bundles, TF, overlay, markers and diagnostics. Conversions live in conversions.cpp, parameters in
 // parameters.cpp; this file is wiring. Every callback runs on the nodelet's single-threaded queue,
 // except the connect callbacks (publisher threads), which only touch the subscriptions.
 //
@@ -208,7 +208,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::map<const Image*, Clock::time_point> arrived_;          // arrival of images not yet processed
 
   // Outputs.
-  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_, bundles_pub_;
+  ros::Publisher tags_pub_, markers_pub_, tracks_pub_, track_markers_pub_, bundles_pub_, bundle_markers_pub_;
   image_transport::Publisher overlay_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
@@ -313,7 +313,10 @@ void DetectorNodelet::Start() {
   tracks_pub_ = nh_.advertise<TagTracks>("tracks", 10, connect, connect);
   track_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("track_markers", 1, connect, connect);
   overlay_pub_ = it_->advertise("overlay", 1, connect_image, connect_image);
-  if (!params_.bundles.empty()) bundles_pub_ = nh_.advertise<BundleArray>("bundles", 10, connect, connect);
+  if (!params_.bundles.empty()) {
+    bundles_pub_ = nh_.advertise<BundleArray>("bundles", 10, connect, connect);
+    bundle_markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("bundle_markers", 1, connect, connect);
+  }
   if (params_.publish_tf) Subscribe();  // TF has no subscriber count: it always counts as listening
   const char* transport = params_.transport == Transport::kRaw          ? "raw"
                           : params_.transport == Transport::kCompressed ? "compressed"
@@ -334,7 +337,7 @@ void DetectorNodelet::ConnectCallback() {
   const bool listening = params_.publish_tf || tags_pub_.getNumSubscribers() > 0 ||
                          markers_pub_.getNumSubscribers() > 0 || overlay_pub_.getNumSubscribers() > 0 ||
                          tracks_pub_.getNumSubscribers() > 0 || track_markers_pub_.getNumSubscribers() > 0 ||
-                         bundles_pub_.getNumSubscribers() > 0;
+                         bundles_pub_.getNumSubscribers() > 0 || bundle_markers_pub_.getNumSubscribers() > 0;
   if (listening && !subscribed_) {
     Subscribe();
   } else if (!listening && subscribed_) {
@@ -625,18 +628,7 @@ TagTracks DetectorNodelet::UpdateTracks(const std::vector<ArucoTag>& tags, const
   tracker_->Update(header.frame_id, header.stamp.toSec(), MeasurementsInFrame(tags, rotation, translation));
   std_msgs::Header frame = header;
   if (!params_.output_frame.empty()) frame.frame_id = params_.output_frame;
-  TagTracks tracks = ToMessage(tracker_->Tracks(), frame, params_.tracker.filter);
-  // The core keeps stamps as double seconds (a fraction of a microsecond off today's stamps): give
-  // each track its image's exact stamp back.
-  std::map<uint32_t, ros::Time> last_seen;
-  for (size_t i = 0; i < tracks.tracks.size(); ++i) {
-    TagTrack& track = tracks.tracks[i];
-    const auto known = last_seen_.find(track.track_id);
-    const bool hit_now = tracker_->Tracks()[i].last_seen == header.stamp.toSec() || known == last_seen_.end();
-    track.last_seen = last_seen[track.track_id] = hit_now ? header.stamp : known->second;
-  }
-  last_seen_.swap(last_seen);
-  return tracks;
+  return ToMessage(*tracker_, frame, header.stamp, last_seen_);
 }
 
 void DetectorNodelet::Publish(const ImageConstPtr& image, const ArucoTagArray& array,
@@ -668,28 +660,23 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tra
   if (array.header.frame_id.empty()) return;  // Process reported it
   // A post shows one id on several faces; TF gets only the best-measured face per id, or with
   // ~tf_from_validated_tracks the most-seen validated track per id (its filtered pose).
-  std::map<int, const ArucoTagMsg*> best;
-  std::map<int, ArucoTagMsg> validated;  // id -> the pose of its most-seen validated track
+  std::map<int, geometry_msgs::Pose> best;
   if (params_.tf_from_validated_tracks) {
-    std::map<int, uint32_t> hits;
-    for (const auto& track : tracks.tracks) {
-      if (!track.validated || track.hits <= hits[track.id]) continue;
-      hits[track.id] = track.hits;
-      validated[track.id].pose = track.pose.pose;
-    }
-    for (const auto& [id, pose] : validated) best[id] = &pose;
+    best = ValidatedPoses(tracks);
   } else {
+    std::map<int, const ArucoTagMsg*> chosen;
     for (const auto& tag : array.tags) {
       if (tag.pose_source == ArucoTagMsg::NONE) continue;
-      const ArucoTagMsg*& chosen = best[tag.id];
-      if (!chosen || BetterMeasured(tag, *chosen)) chosen = &tag;
+      const ArucoTagMsg*& current = chosen[tag.id];
+      if (!current || BetterMeasured(tag, *current)) current = &tag;
     }
+    for (const auto& [id, tag] : chosen) best[id] = tag->pose;
   }
   std_msgs::Header header = array.header;
   if (header.stamp.isZero()) header.stamp = ros::Time::now();
   const std::string prefix = ChildFramePrefix(array.header.frame_id);
   std::vector<geometry_msgs::TransformStamped> transforms;
-  for (const auto& [id, tag] : best) {
+  for (const auto& [id, pose] : best) {
     const std::string child = prefix + std::to_string(id);
     ros::Time& last = last_tf_stamp_[child];
     if (last == header.stamp) {  // a repeated image stamp: listeners would reject it as TF_REPEATED_DATA
@@ -697,7 +684,7 @@ void DetectorNodelet::PublishTf(const ArucoTagArray& array, const TagTracks& tra
       continue;
     }
     last = header.stamp;
-    transforms.push_back(ToTransform(*tag, header, child));
+    transforms.push_back(ToTransform(pose, header, child));
   }
   if (!transforms.empty()) tf_broadcaster_->sendTransform(transforms);
 }
@@ -721,6 +708,7 @@ void DetectorNodelet::PublishBundles(const std_msgs::Header& header, const Camer
   }
   const BundleArray array = ToMessage(poses, children, header, to_output);
   bundles_pub_.publish(array);
+  if (bundle_markers_pub_.getNumSubscribers() > 0) bundle_markers_pub_.publish(ToBundleMarkers(array, params_.bundles));
   if (!params_.publish_tf || array.header.frame_id.empty()) return;
   std_msgs::Header parent = array.header;
   if (parent.stamp.isZero()) parent.stamp = ros::Time::now();

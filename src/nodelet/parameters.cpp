@@ -96,6 +96,7 @@ const char* const kOtherNames[] = {
     "depth_noise", "tf_from_validated_tracks", "bundles",
     "diagnostic_period",  // diagnostic_updater's own
 };
+const char* const kFuserNames[] = {"inputs", "output_frame", "queue_size", "publish_tf", "frame_prefix"};
 
 template <class T>
 const char* TypeName();
@@ -109,6 +110,8 @@ template <>
 const char* TypeName<std::string>() { return "a string"; }
 template <>
 const char* TypeName<std::vector<int>>() { return "a list of integers"; }
+template <>
+const char* TypeName<std::vector<std::string>>() { return "a list of strings"; }
 
 // Absent keeps `value`; present with another type throws.
 template <class T>
@@ -249,6 +252,40 @@ void RequireIds(const std::vector<int>& ids, const std::string& name) {
   for (int id : ids) Require(id >= 0, name, "must hold marker ids >= 0, got " + std::to_string(id));
 }
 
+// ~track_*, validated.
+void ReadTrackParameters(const ros::NodeHandle& pnh, TrackerConfig& tracker) {
+  ForEachTrackField([&](const auto& field) { Get(pnh, field.name, tracker.*field.core); });
+  try {
+    tracker.Validate();
+  } catch (const Error& e) {
+    throw Error(std::string("~track_* parameters: ") + e.what());
+  }
+}
+
+// Every private parameter the detector reads but ~track_*.
+std::set<std::string> DetectorNames() {
+  std::set<std::string> known(std::begin(kOtherNames), std::end(kOtherNames));
+  DetectorConfig detector;
+  PreprocessOptions preprocess;
+  ForEachField(detector, preprocess, [&known](const auto& field, auto&) { known.insert(field.name); });
+  return known;
+}
+
+// Private parameters on the server that are neither in `known` nor ~track_*.
+std::vector<std::string> Unknown(const ros::NodeHandle& pnh, std::set<std::string> known) {
+  ForEachTrackField([&known](const auto& field) { known.insert(field.name); });
+  std::vector<std::string> names;
+  ros::param::getParamNames(names);
+  const std::string prefix = pnh.getNamespace() + "/";
+  std::set<std::string> unknown;
+  for (const auto& name : names) {
+    if (name.compare(0, prefix.size(), prefix) != 0) continue;
+    const std::string top = name.substr(prefix.size(), name.find('/', prefix.size()) - prefix.size());
+    if (!known.count(top)) unknown.insert(top);
+  }
+  return {unknown.begin(), unknown.end()};
+}
+
 }  // namespace
 
 NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
@@ -341,35 +378,42 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   Get(pnh, "cloud_cache_size", p.cloud_cache_size);
   Require(p.cloud_cache_size >= 1, "cloud_cache_size", "must be >= 1");
 
-  ForEachTrackField([&](const auto& field) { Get(pnh, field.name, p.tracker.*field.core); });
-  try {
-    p.tracker.Validate();
-  } catch (const Error& e) {
-    throw Error(std::string("~track_* parameters: ") + e.what());
-  }
+  ReadTrackParameters(pnh, p.tracker);
   p.tracker.filter = !p.output_frame.empty();
   Get(pnh, "tf_from_validated_tracks", p.tf_from_validated_tracks);
   p.bundles = ReadBundles(pnh);
   return p;
 }
 
-std::vector<std::string> UnknownParameters(const ros::NodeHandle& pnh) {
-  std::set<std::string> known(std::begin(kOtherNames), std::end(kOtherNames));
-  DetectorConfig detector;
-  PreprocessOptions preprocess;
-  ForEachField(detector, preprocess, [&known](const auto& field, auto&) { known.insert(field.name); });
-  ForEachTrackField([&known](const auto& field) { known.insert(field.name); });
+std::vector<std::string> UnknownParameters(const ros::NodeHandle& pnh) { return Unknown(pnh, DetectorNames()); }
 
-  std::vector<std::string> names;
-  ros::param::getParamNames(names);
-  const std::string prefix = pnh.getNamespace() + "/";
-  std::set<std::string> unknown;
-  for (const auto& name : names) {
-    if (name.compare(0, prefix.size(), prefix) != 0) continue;
-    const std::string top = name.substr(prefix.size(), name.find('/', prefix.size()) - prefix.size());
-    if (!known.count(top)) unknown.insert(top);
-  }
-  return {unknown.begin(), unknown.end()};
+FuserParameters ReadFuserParameters(const ros::NodeHandle& pnh) {
+  FuserParameters p;
+  Get(pnh, "inputs", p.inputs);
+  Require(!p.inputs.empty(), "inputs", "must list the tags topics to fuse, e.g. [/front/tags, /rear/tags]");
+  const std::set<std::string> distinct(p.inputs.begin(), p.inputs.end());
+  Require(distinct.size() == p.inputs.size(), "inputs", "names a topic twice");
+  Require(!distinct.count(""), "inputs", "holds an empty topic name");
+  Get(pnh, "output_frame", p.fixed_frame);
+  Require(!p.fixed_frame.empty(), "output_frame",
+          "must name the fixed frame (e.g. odom) every input's detector publishes in (its ~output_frame)");
+  Get(pnh, "queue_size", p.queue_size);
+  Require(p.queue_size >= 1, "queue_size", "must be >= 1");
+  ReadTrackParameters(pnh, p.tracker);
+  p.tracker.filter = true;
+  Get(pnh, "publish_tf", p.publish_tf);
+  Get(pnh, "frame_prefix", p.frame_prefix);
+  if (p.frame_prefix.empty()) p.frame_prefix = FuserParameters().frame_prefix;  // as the detector's: "" = default
+  Require(p.frame_prefix[0] != '/', "frame_prefix",
+          "must be a TF frame prefix without a leading '/' (tf2 refuses those), e.g. fused/aruco_");
+  return p;
+}
+
+std::vector<std::string> UnknownFuserParameters(const ros::NodeHandle& pnh) {
+  // The detector's keys too: one config file (config/urc.yaml) serves the detectors and the fuser.
+  std::set<std::string> known = DetectorNames();
+  known.insert(std::begin(kFuserNames), std::end(kFuserNames));
+  return Unknown(pnh, known);
 }
 
 void ApplyReconfigure(const ArucotagDetectorConfig& config, DetectorConfig& detector, PreprocessOptions& preprocess) {

@@ -1,3 +1,4 @@
+#include <arucotag/ros/conversions.hpp>  // first: it renames the generated ArucoTag message
 #include <arucotag/ros/tracks.hpp>
 
 #include <algorithm>
@@ -59,12 +60,53 @@ TagTracks ToMessage(const std::vector<Track>& tracks, const std_msgs::Header& he
   return msg;
 }
 
+TagTracks ToMessage(const TagTracker& tracker, const std_msgs::Header& header, const ros::Time& frame_stamp,
+                    std::map<std::uint32_t, ros::Time>& last_seen) {
+  TagTracks msg = ToMessage(tracker.Tracks(), header, tracker.Config().filter);
+  std::map<std::uint32_t, ros::Time> kept;
+  for (size_t i = 0; i < msg.tracks.size(); ++i) {
+    TagTrack& track = msg.tracks[i];
+    const auto known = last_seen.find(track.track_id);
+    const bool hit_now = tracker.Tracks()[i].last_seen == frame_stamp.toSec() || known == last_seen.end();
+    track.last_seen = kept[track.track_id] = hit_now ? frame_stamp : known->second;
+  }
+  last_seen.swap(kept);
+  return msg;
+}
+
+std::vector<TrackMeasurement> MeasurementsFromMessage(const ArucoTagArray& tags) {
+  std::vector<TrackMeasurement> measurements;
+  for (const auto& tag : tags.tags) {
+    const bool finite = std::all_of(tag.covariance.begin(), tag.covariance.end(), [](double v) { return std::isfinite(v); });
+    if (tag.pose_source == ArucoTagMsg::NONE || !finite) continue;
+    TrackMeasurement m;
+    m.id = tag.id;
+    m.position = {tag.pose.position.x, tag.pose.position.y, tag.pose.position.z};
+    tf2::Quaternion q;
+    tf2::fromMsg(tag.pose.orientation, q);
+    const tf2::Matrix3x3 r(q.normalized());
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) m.rotation(i, j) = r[i][j];
+    }
+    std::copy(tag.covariance.begin(), tag.covariance.end(), m.covariance.val);  // both row-major
+    measurements.push_back(m);
+  }
+  return measurements;
+}
+
+std::map<int, geometry_msgs::Pose> ValidatedPoses(const TagTracks& tracks) {
+  std::map<int, geometry_msgs::Pose> poses;
+  std::map<int, uint32_t> hits;
+  for (const auto& track : tracks.tracks) {
+    if (!track.validated || track.hits <= hits[track.id]) continue;
+    hits[track.id] = track.hits;
+    poses[track.id] = track.pose.pose;
+  }
+  return poses;
+}
+
 visualization_msgs::MarkerArray ToTrackMarkers(const TagTracks& tracks) {
-  visualization_msgs::MarkerArray markers;
-  visualization_msgs::Marker clear;
-  clear.header = tracks.header;
-  clear.action = visualization_msgs::Marker::DELETEALL;
-  markers.markers.push_back(clear);
+  visualization_msgs::MarkerArray markers = ClearedMarkers(tracks.header);
   for (const auto& track : tracks.tracks) {
     const auto& c = track.pose.covariance;
     const cv::Matx33d position(c[0], c[1], c[2], c[6], c[7], c[8], c[12], c[13], c[14]);

@@ -423,6 +423,25 @@ TEST(Tracker, ValidationNeedsItsHitsWithinTheWindow) {
   EXPECT_NEAR(tracker.Tracks().front().age, 2.0, 1e-12);
 }
 
+// Two cameras' frames reach the tracker out of stamp order (a fuser node gets each camera's
+// detections when its detector is done): a late, older frame must not set the track's last sighting
+// back, or max_unseen drops a marker the other camera saw a moment ago.
+TEST(Tracker, LateFrameOfAnotherCameraDoesNotAgeTheTrack) {
+  TrackerConfig config;
+  config.max_unseen = 0.5;
+  TagTracker tracker(config);
+  tracker.Update("front", 1.0, {Measured(1, {5, 0, 0})});
+  tracker.Update("rear", 0.6, {Measured(1, {5, 0, 0})});  // 0.4 s late: within max_unseen, no reset
+  ASSERT_EQ(tracker.Tracks().size(), 1u);
+  EXPECT_EQ(tracker.Tracks().front().hits, 2);
+  EXPECT_DOUBLE_EQ(tracker.Tracks().front().last_seen, 1.0);
+  tracker.Update("front", 1.45, {});  // a frame without it: 0.45 s since the front camera saw it
+  ASSERT_EQ(tracker.Tracks().size(), 1u) << "dropped as if last seen at the rear frame's 0.6 s";
+  EXPECT_EQ(tracker.Tracks().front().cameras, (std::vector<std::string>{"front", "rear"}));
+  tracker.Update("front", 1.55, {});
+  EXPECT_TRUE(tracker.Tracks().empty()) << "0.55 s unseen";
+}
+
 TEST(Tracker, StampGoingBackClearsTracksAndBadConfigIsRefused) {
   TagTracker tracker;
   tracker.Update("c", 100.0, {Measured(1, {5, 0, 0})});

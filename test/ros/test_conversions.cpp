@@ -68,5 +68,55 @@ TEST(ToMessage, CovarianceTurnsWithTheOutputFrame) {
   EXPECT_NEAR(array.tags[0].pose.position.y, 0.2, 1e-12);
 }
 
+// rviz's view of a bundle: every configured face where the bundle pose puts it, the name above it,
+// after the DELETEALL that clears the previous frame's; a bundle missing from the config draws nothing.
+TEST(ToBundleMarkers, FacesStandWhereTheBundlePosePutsThem) {
+  const std::vector<MarkerBundle> config = BundlesFromText(R"({"bundles": [{"name": "post", "members": [
+      {"id": 1, "size": 0.15, "position": [0.1, 0.0, 0.5], "rpy_deg": [90, 0, 90]},
+      {"id": 2, "size": 0.2, "position": [0.0, 0.1, 0.5], "rpy_deg": [90, 0, 180]}]}]})");
+  BundleArray array;
+  array.header.frame_id = "odom";
+  array.header.stamp = ros::Time(42, 5);
+  Bundle post;
+  post.name = "post";
+  post.pose.pose.position.x = 7.0;
+  post.pose.pose.position.y = -1.0;
+  tf2::Quaternion q;
+  q.setRPY(0.0, 0.0, M_PI / 2);  // the post turned a quarter turn: its +x is odom's +y
+  post.pose.pose.orientation = tf2::toMsg(q);
+  array.bundles.push_back(post);
+  Bundle unknown = post;
+  unknown.name = "not_configured";
+  array.bundles.push_back(unknown);
+
+  const visualization_msgs::MarkerArray markers = ToBundleMarkers(array, config);
+  ASSERT_EQ(markers.markers.size(), 4u);  // DELETEALL, two faces, one label
+  EXPECT_EQ(markers.markers[0].action, visualization_msgs::Marker::DELETEALL);
+  for (const auto& m : markers.markers) {
+    EXPECT_EQ(m.header.frame_id, "odom");
+    EXPECT_EQ(m.header.stamp, array.header.stamp);
+  }
+  const auto& front = markers.markers[1];
+  EXPECT_EQ(front.type, visualization_msgs::Marker::CUBE);
+  EXPECT_NEAR(front.pose.position.x, 7.0, 1e-12);  // member x 0.1 turned onto odom y
+  EXPECT_NEAR(front.pose.position.y, -0.9, 1e-12);
+  EXPECT_NEAR(front.pose.position.z, 0.5, 1e-12);
+  EXPECT_DOUBLE_EQ(front.scale.x, 0.15);
+  // The face's normal (marker z) points along the bundle's +x, which is odom's +y.
+  tf2::Quaternion face;
+  tf2::fromMsg(front.pose.orientation, face);
+  const tf2::Vector3 normal = tf2::quatRotate(face, tf2::Vector3(0, 0, 1));
+  EXPECT_NEAR(normal.y(), 1.0, 1e-9);
+  const auto& left = markers.markers[2];
+  EXPECT_NEAR(left.pose.position.x, 6.9, 1e-12);  // member y 0.1 turned onto odom -x
+  EXPECT_NEAR(left.pose.position.y, -1.0, 1e-12);
+  EXPECT_DOUBLE_EQ(left.scale.y, 0.2);
+  const auto& label = markers.markers[3];
+  EXPECT_EQ(label.type, visualization_msgs::Marker::TEXT_VIEW_FACING);
+  EXPECT_EQ(label.text, "post");
+  EXPECT_NEAR(label.pose.position.z, 0.5 + 0.1 + 0.1, 1e-12);  // above the highest face's top edge
+  EXPECT_NE(front.id, left.id);
+}
+
 }  // namespace
 }  // namespace arucotag

@@ -16,6 +16,7 @@
 #include <tf2_msgs/TFMessage.h>
 #include <tf2_ros/static_transform_broadcaster.h>
 
+#include "photos.hpp"
 #include "rig.hpp"
 
 namespace arucotag::test {
@@ -23,44 +24,6 @@ namespace {
 
 using TagArray = arucotag::ArucoTagArray;
 using TagMsg = arucotag::ArucoTag;
-using Quad = std::array<cv::Point2d, 4>;
-
-constexpr double kSide = 0.145;
-constexpr const char* kFrame = "raspicam_optical";
-// The calibration UbiquityRobotics/fiducials ships with these photos.
-const cv::Matx33d kK(1006.126285753055, 0, 655.8639244150409, 0, 1004.015433012594, 490.6140221242933, 0, 0, 1);
-const std::vector<double> kD{0.1349735087283542, -0.2335869827451621, 0.0006697030315075139, 0.004846737465872353, 0.0};
-
-struct Photo {
-  cv::Mat bgr;
-  std::map<int, Quad> corners;  ///< the upstream suite's corners (OpenCV sub-pixel)
-};
-
-const Photo& TwoTags() {
-  static const Photo photo{cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/ubiquity_fiducials/tag_245-246_d7_14cm.png"),
-                           {{245, {{{307.68246, 157.38346}, {545.10131, 167.04420}, {540.11614, 403.27578},
-                                    {305.64746, 395.01422}}}},
-                            {246, {{{671.51892, 173.46070}, {900.29650, 178.44973}, {895.06933, 407.39855},
-                                    {666.39910, 403.12911}}}}}};
-  return photo;
-}
-
-const Photo& OneTag() {
-  static const Photo photo{cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/ubiquity_fiducials/tag_01_d7_14cm.png"),
-                           {{1, {{{569.89917, 201.55890}, {777.42560, 206.85025}, {767.95856, 415.37830},
-                                  {565.75311, 409.24496}}}}}};
-  return photo;
-}
-
-// The pose the reference corners give under the calibration (marker -> optical frame).
-void ReferencePose(const Quad& corners, cv::Matx33d& rotation, cv::Vec3d& position) {
-  const double h = kSide / 2.0;
-  const std::vector<cv::Point3d> object{{-h, h, 0.0}, {h, h, 0.0}, {h, -h, 0.0}, {-h, -h, 0.0}};
-  const std::vector<cv::Point2d> image(corners.begin(), corners.end());
-  cv::Vec3d rvec;
-  cv::solvePnP(object, image, kK, kD, rvec, position, false, cv::SOLVEPNP_IPPE_SQUARE);
-  cv::Rodrigues(rvec, rotation);
-}
 
 // Ids exactly the photo's, every corner within 1 px of the upstream answer (OpenCV's sub-pixel corners; our edge
 // fit differs from them by up to 0.52 px on these photos) and, when a pose is
@@ -89,32 +52,11 @@ void ReferencePose(const Quad& corners, cv::Matx33d& rotation, cv::Vec3d& positi
   return ::testing::AssertionSuccess();
 }
 
-sensor_msgs::CameraInfoPtr RaspiInfo(const ros::Time& stamp) {
-  auto info = boost::make_shared<sensor_msgs::CameraInfo>();
-  info->header.stamp = stamp;
-  info->header.frame_id = kFrame;
-  info->width = 1280;
-  info->height = 960;
-  info->distortion_model = "plumb_bob";
-  info->D = kD;
-  for (int i = 0; i < 9; ++i) info->K[i] = kK.val[i];
-  info->R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) info->P[r * 4 + c] = kK(r, c);
-  return info;
-}
-
-sensor_msgs::ImagePtr PhotoImage(const Photo& photo, const ros::Time& stamp) {
-  auto image = Rig::ImageMessage(photo.bgr, stamp);
-  image->header.frame_id = kFrame;
-  return image;
-}
-
 // As raspicam_node sends it: a jpeg, format "jpeg".
 sensor_msgs::CompressedImagePtr PhotoJpeg(const Photo& photo, const ros::Time& stamp) {
   auto jpeg = boost::make_shared<sensor_msgs::CompressedImage>();
   jpeg->header.stamp = stamp;
-  jpeg->header.frame_id = kFrame;
+  jpeg->header.frame_id = kPhotoFrame;
   jpeg->format = "jpeg";
   cv::imencode(".jpg", photo.bgr, jpeg->data, {cv::IMWRITE_JPEG_QUALITY, 95});
   return jpeg;
@@ -132,14 +74,14 @@ sensor_msgs::PointCloud2Ptr PhotoCloud(const Photo& photo, const ros::Time& stam
       cv::Matx33d r;
       sim::Marker m;
       m.id = id;
-      m.side = kSide;
+      m.side = kPhotoSide;
       ReferencePose(corners, r, m.tvec);
       cv::Rodrigues(r, m.rvec);
       markers.push_back(m);
     }
-    points = sim::MarkerPlanesCloud(kK, kD, photo.bgr.size(), factor, markers, 1.5);
+    points = sim::MarkerPlanesCloud(kPhotoK, kPhotoD, photo.bgr.size(), factor, markers, 1.5);
   }
-  return Rig::CloudMessage(points, stamp, kFrame);
+  return Rig::CloudMessage(points, stamp, kPhotoFrame);
 }
 
 // One pattern's detector: its inputs under /<ns>, its tags collected by stamp, in arrival order.
@@ -205,7 +147,7 @@ TEST(StampPatterns, BagWithASingleCompressedImage) {
   ASSERT_EQ(Play("-d 1 " + path), 0);
   const auto msg = single.tags.Wait(stamp, 5.0);
   ASSERT_TRUE(msg) << "the single frame must be answered";
-  EXPECT_EQ(msg->header.frame_id, kFrame);
+  EXPECT_EQ(msg->header.frame_id, kPhotoFrame);
   EXPECT_TRUE(MatchesPhoto(*msg, OneTag(), true)) << "camera_info came after the image: the image waits for it";
   EXPECT_EQ(single.Count(), 1u);
   std::remove(path.c_str());
@@ -271,7 +213,7 @@ TEST(StampPatterns, RepeatedIdenticalStamps) {
   ros::WallDuration(0.3).sleep();
   std::lock_guard<std::mutex> lock(mutex);
   for (int id : {245, 246}) {
-    const std::string key = std::string(kFrame) + "/aruco_" + std::to_string(id) + "@" + std::to_string(stamp.toNSec());
+    const std::string key = std::string(kPhotoFrame) + "/aruco_" + std::to_string(id) + "@" + std::to_string(stamp.toNSec());
     EXPECT_EQ(sent[key], 1) << key;
   }
 }
@@ -395,7 +337,7 @@ TEST(StampPatterns, ValidatedTracksOnThePhotoStream) {
   tf2_ros::StaticTransformBroadcaster statics;
   geometry_msgs::TransformStamped world;
   world.header.frame_id = "world";
-  world.child_frame_id = kFrame;
+  world.child_frame_id = kPhotoFrame;
   world.transform.translation.x = world_translation[0];
   world.transform.translation.z = world_translation[2];
   world.transform.rotation.x = world.transform.rotation.z = -0.5;  // the matrix above as a quaternion
@@ -418,7 +360,7 @@ TEST(StampPatterns, ValidatedTracksOnThePhotoStream) {
     for (const auto& track : msg->tracks) {
       const auto truth = TwoTags().corners.find(track.id);
       ASSERT_NE(truth, TwoTags().corners.end()) << "track of id " << track.id;
-      EXPECT_EQ(track.cameras, std::vector<std::string>{kFrame});
+      EXPECT_EQ(track.cameras, std::vector<std::string>{kPhotoFrame});
       EXPECT_EQ(track.hits, static_cast<uint32_t>(i + 1));
       EXPECT_EQ(track.misses, 0u);
       EXPECT_EQ(track.validated, i >= 2) << "frame " << i;

@@ -14,7 +14,8 @@
 namespace arucotag {
 namespace {
 
-TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
+// Id 5 with a PnP pose 3 m ahead and a covariance with a range-rotation correlation.
+ArucoTag PnpTag() {
   ArucoTag tag;
   tag.id = 5;
   tag.pose_source = PoseSource::kPnp;
@@ -24,6 +25,11 @@ TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
   const double diagonal[6] = {1e-6, 4e-6, 9e-4, 1e-4, 4e-4, 1e-5};
   for (int i = 0; i < 6; ++i) tag.covariance(i, i) = diagonal[i];
   tag.covariance(2, 4) = tag.covariance(4, 2) = 7e-6;
+  return tag;
+}
+
+TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
+  const ArucoTag tag = PnpTag();
 
   geometry_msgs::TransformStamped to_odom;
   to_odom.header.frame_id = "odom";
@@ -52,6 +58,90 @@ TEST(Tracks, MeasurementInFrameMatchesTheTagMessageInOutputFrame) {
     for (int j = 0; j < 3; ++j) EXPECT_NEAR(m.rotation(i, j), r[i][j], 1e-9);
   }
   for (int i = 0; i < 36; ++i) EXPECT_NEAR(m.covariance.val[i], array.tags[0].covariance[i], 1e-15) << i;
+}
+
+// The fuser's measurements, read back from a detector's tags in ~output_frame, are the detector's own
+// tracker's (MeasurementsInFrame): same pose, same covariance; a tag without a pose gives none.
+TEST(Tracks, MeasurementsFromMessageAreTheDetectorsOwn) {
+  const ArucoTag seen = PnpTag();
+  ArucoTag corners_only;
+  corners_only.id = 9;
+
+  geometry_msgs::TransformStamped to_odom;
+  to_odom.header.frame_id = "odom";
+  tf2::Quaternion q;
+  q.setRPY(-0.3, 0.1, 2.0);
+  to_odom.transform.rotation = tf2::toMsg(q);
+  to_odom.transform.translation.x = -2.0;
+  to_odom.transform.translation.z = 1.5;
+  std_msgs::Header header;
+  header.frame_id = "front_optical";
+  const ArucoTagArray array = ToMessage({corners_only, seen}, header, &to_odom);
+  EXPECT_EQ(array.header.frame_id, "odom");
+  EXPECT_EQ(array.camera_frame_id, "front_optical");
+
+  cv::Matx33d rotation;
+  cv::Vec3d translation;
+  ToRigid(to_odom.transform, rotation, translation);
+  const std::vector<TrackMeasurement> own = MeasurementsInFrame({corners_only, seen}, rotation, translation);
+  const std::vector<TrackMeasurement> read = MeasurementsFromMessage(array);
+  ASSERT_EQ(own.size(), 1u);
+  ASSERT_EQ(read.size(), 1u);
+  EXPECT_EQ(read[0].id, 5);
+  for (int i = 0; i < 3; ++i) EXPECT_NEAR(read[0].position[i], own[0].position[i], 1e-12);
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(read[0].rotation.val[i], own[0].rotation.val[i], 1e-9) << i;
+  for (int i = 0; i < 36; ++i) EXPECT_NEAR(read[0].covariance.val[i], own[0].covariance.val[i], 1e-15) << i;
+  EXPECT_FALSE(read[0].has_alternative);
+}
+
+// TF from tracks: per id the most-seen validated track; unvalidated ones never.
+TEST(Tracks, ValidatedPosesTakeTheMostSeenValidatedTrackPerId) {
+  TagTracks tracks;
+  const auto add = [&tracks](int id, bool validated, uint32_t hits, double x) {
+    TagTrack t;
+    t.id = id;
+    t.validated = validated;
+    t.hits = hits;
+    t.pose.pose.position.x = x;
+    t.pose.pose.orientation.w = 1.0;
+    tracks.tracks.push_back(t);
+  };
+  add(1, true, 5, 1.0);
+  add(1, true, 9, 2.0);   // the same id on another face, seen more
+  add(1, false, 20, 3.0);  // not validated: never TF
+  add(2, false, 4, 4.0);
+  add(3, true, 3, 5.0);
+  const std::map<int, geometry_msgs::Pose> poses = ValidatedPoses(tracks);
+  ASSERT_EQ(poses.size(), 2u);
+  EXPECT_EQ(poses.at(1).position.x, 2.0);
+  EXPECT_EQ(poses.at(3).position.x, 5.0);
+}
+
+// The tracks' message after an update keeps each track's exact last-seen stamp, also for a track
+// another camera saw last (the fuser: frames of two cameras, header at the latest stamp).
+TEST(Tracks, TrackerMessageKeepsExactLastSeenStamps) {
+  TagTracker tracker;
+  std::map<std::uint32_t, ros::Time> last_seen;
+  TrackMeasurement m;
+  m.id = 4;
+  m.position = cv::Vec3d(5.0, 0.0, 1.0);
+  m.covariance = PoseCovariance::eye() * 1e-4;
+  std_msgs::Header header;
+  header.frame_id = "odom";
+  const ros::Time front(1700000000, 123456789), rear(1700000000, 160000001);
+  tracker.Update("front", front.toSec(), {m});
+  header.stamp = front;
+  TagTracks msg = ToMessage(tracker, header, front, last_seen);
+  ASSERT_EQ(msg.tracks.size(), 1u);
+  EXPECT_EQ(msg.tracks[0].last_seen, front);
+  tracker.Update("rear", rear.toSec(), {m});
+  header.stamp = rear;
+  msg = ToMessage(tracker, header, rear, last_seen);
+  EXPECT_EQ(msg.tracks[0].last_seen, rear);
+  EXPECT_TRUE(msg.tracks[0].filtered);
+  tracker.Update("front", front.toSec() + 1e-3, {});  // a late frame of the other camera, without it
+  msg = ToMessage(tracker, header, front + ros::Duration(1e-3), last_seen);
+  EXPECT_EQ(msg.tracks[0].last_seen, rear);
 }
 
 TEST(Tracks, MessageAndEllipsoidCarryTheTrack) {

@@ -35,6 +35,7 @@ ArucoTagMsg ToMessage(const ArucoTag& tag);
 
 /// All detections of one frame. `header` is the image's; when `to_output` is given the poses are
 /// moved by it and the header's frame_id becomes its parent frame (the ~output_frame).
+/// camera_frame_id is the image's frame_id either way.
 ArucoTagArray ToMessage(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
                         const geometry_msgs::TransformStamped* to_output = nullptr);
 
@@ -66,10 +67,20 @@ sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& e
 pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& cloud, const cv::Size& image_size,
                                                 const geometry_msgs::Transform* transform = nullptr);
 
+/// The opener of every MarkerArray published here: one DELETEALL with `header`, so markers of
+/// tags, tracks or bundles that disappeared since the last array are cleared.
+visualization_msgs::MarkerArray ClearedMarkers(const std_msgs::Header& header);
+
 /// The rviz view of a tag array: a DELETEALL first (so tags that disappear are cleared), then per
 /// tag with a pose a flat CUBE (side x side x 5 mm) at its pose and a TEXT_VIEW_FACING id label
 /// just above it. Stamp and frame are the array's.
 visualization_msgs::MarkerArray ToMarkers(const ArucoTagArray& tags);
+
+/// The rviz view of the bundles of one frame: a DELETEALL first, then per bundle in view every member
+/// of its configuration in `bundles` (found by name) as a flat CUBE at the bundle pose times the
+/// member's pose (faces in view and out of view alike: the whole object where it stands), and a
+/// TEXT_VIEW_FACING label with the bundle's name above the bundle origin. Stamp and frame are the array's.
+visualization_msgs::MarkerArray ToBundleMarkers(const BundleArray& array, const std::vector<MarkerBundle>& bundles);
 
 /// The TF of one tag: parent = header.frame_id, child = `child_frame`, stamp = header.stamp.
 geometry_msgs::TransformStamped ToTransform(const ArucoTagMsg& tag, const std_msgs::Header& header,

@@ -44,6 +44,23 @@ struct NodeletParameters {
   std::vector<MarkerBundle> bundles;  ///< ~bundles (config/urc_bundles.yaml), validated; empty: none
 };
 
+/// The track fuser's private parameters (arucotag/TrackFuser; README, "Fusing cameras").
+struct FuserParameters {
+  std::vector<std::string> inputs;  ///< ~inputs: ArucoTagArray topics of detectors with ~output_frame; at least one
+  std::string fixed_frame;          ///< ~output_frame: the frame every input's poses must be in; required
+  int queue_size = 10;
+  TrackerConfig tracker;            ///< ~track_*, as the detector reads them; `filter` always on
+  bool publish_tf = true;           ///< TF <frame_prefix><id> from validated tracks
+  std::string frame_prefix = "fused/aruco_";  ///< ~frame_prefix; "" also means this default
+};
+
+/// Reads and validates the track fuser's private parameters; throws arucotag::Error naming the
+/// offending one, as ReadParameters.
+FuserParameters ReadFuserParameters(const ros::NodeHandle& pnh);
+
+/// Private parameters present on the server that ReadFuserParameters does not read.
+std::vector<std::string> UnknownFuserParameters(const ros::NodeHandle& pnh);
+
 /// Reads and validates the private parameters. Throws arucotag::Error naming the offending
 /// parameter ("~tag_size must be > 0 m, got -1") on a wrong type or value; absent ones keep their
 /// defaults.
