@@ -237,6 +237,13 @@ sensor_msgs::ImagePtr ToImageMessage(const cv::Mat& pixels, const std::string& e
 
 pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& cloud, const cv::Size& image_size,
                                                 const geometry_msgs::Transform* transform) {
+  pcl::PointCloud<pcl::PointXYZ> points;
+  CloudFromMessage(cloud, image_size, transform, points);
+  return points;
+}
+
+void CloudFromMessage(const sensor_msgs::PointCloud2& cloud, const cv::Size& image_size,
+                      const geometry_msgs::Transform* transform, pcl::PointCloud<pcl::PointXYZ>& out) {
   // pcl::fromROSMsg trusts the message: a missing or float64 field leaves zeros (with a warning on
   // the console), a short buffer is read past its end. So everything it relies on is checked here.
   if (cloud.height <= 1 || cloud.width == 0) {
@@ -270,7 +277,10 @@ pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& 
                 "; an organized cloud must match the image pixel for pixel or be it downscaled by a whole factor");
   }
 
-  pcl::PointCloud<pcl::PointXYZ> points;
+  // A cloud the image's size is read straight into `out` (its buffer reused); a smaller one first
+  // into `small`, then enlarged into `out`.
+  thread_local pcl::PointCloud<pcl::PointXYZ> small;
+  pcl::PointCloud<pcl::PointXYZ>& points = factor < 2 ? out : small;
   pcl::fromROSMsg(cloud, points);
   if (transform) {
     // Non-finite points are left as they are: holes stay holes.
@@ -282,17 +292,19 @@ pcl::PointCloud<pcl::PointXYZ> CloudFromMessage(const sensor_msgs::PointCloud2& 
             .normalized();
     pcl::transformPointCloud(points, points, to_image);
   }
-  if (factor < 2) return points;
+  if (factor < 2) return;
   // A depth camera's cloud at a fraction of the image resolution: each point covers a block. A
   // PointXYZ is x, y, z and a padding float, so OpenCV resizes the points as a 4-channel image.
   static_assert(sizeof(pcl::PointXYZ) == 4 * sizeof(float), "pcl::PointXYZ is x, y, z and one padding float");
-  pcl::PointCloud<pcl::PointXYZ> full(static_cast<uint32_t>(image_size.width), static_cast<uint32_t>(image_size.height));
-  full.header = points.header;
-  full.is_dense = points.is_dense;
+  // points.resize, width, height by hand: PCL 1.10 (Noetic) has no resize(width, height).
+  out.points.resize(static_cast<size_t>(image_size.area()));
+  out.width = static_cast<uint32_t>(image_size.width);
+  out.height = static_cast<uint32_t>(image_size.height);
+  out.header = points.header;
+  out.is_dense = points.is_dense;
   const cv::Mat from(static_cast<int>(points.height), static_cast<int>(points.width), CV_32FC4, points.points.data());
-  cv::Mat to(image_size, CV_32FC4, full.points.data());
+  cv::Mat to(image_size, CV_32FC4, out.points.data());
   cv::resize(from, to, image_size, 0.0, 0.0, cv::INTER_NEAREST);
-  return full;
 }
 
 visualization_msgs::MarkerArray ClearedMarkers(const std_msgs::Header& header) {

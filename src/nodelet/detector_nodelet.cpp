@@ -163,7 +163,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   void Process(const ImageConstPtr& image);
   std::optional<CameraModel> CameraFor(const ros::Time& stamp, const cv::Size& size);
   PointCloud2ConstPtr NearestCloud(const ros::Time& stamp) const;
-  Cloud CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
+  const Cloud& CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header, const cv::Size& size);
   void Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const Cloud& cloud);
   TagTracks UpdateTracks(const std::vector<ArucoTag>& tags, const std_msgs::Header& header,
                          const std::optional<geometry_msgs::TransformStamped>& to_output);
@@ -214,6 +214,7 @@ class DetectorNodelet : public nodelet::Nodelet {
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
   std::unique_ptr<tf2_ros::TransformListener> tf_listener_;
   std::map<std::string, ros::Time> last_tf_stamp_;  // per child frame: TF never gets one stamp twice
+  Cloud cloud_;  // the frame's cloud (CloudFor): its 15 MB buffer is reused frame after frame
 
   boost::recursive_mutex reconfigure_mutex_;
   std::unique_ptr<dynamic_reconfigure::Server<ArucotagDetectorConfig>> reconfigure_;
@@ -528,11 +529,9 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
 
   const cv::Size size = input.pixels.size();
   const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
-  Cloud points;
-  if (params_.use_point_cloud) {
-    points = CloudFor(NearestCloud(header.stamp), header, size);
-    ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
-  }
+  static const Cloud kNoCloud;
+  const Cloud& points = params_.use_point_cloud ? CloudFor(NearestCloud(header.stamp), header, size) : kNoCloud;
+  if (params_.use_point_cloud) ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
   for (auto& tag : tags) Measure(tag, camera, points);
   if (!points.empty() && !tags.empty() &&
       std::none_of(tags.begin(), tags.end(), [](const ArucoTag& tag) { return tag.cloud.valid; })) {
@@ -588,9 +587,12 @@ PointCloud2ConstPtr DetectorNodelet::NearestCloud(const ros::Time& stamp) const 
   return nearest;
 }
 
-Cloud DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header,
-                                const cv::Size& size) {
-  if (!cloud || params_.pose_source == PoseSource::kPnp) return {};
+// The frame's cloud in cloud_ (one buffer for the nodelet's life: frames are processed one at a time),
+// empty when there is none to use.
+const Cloud& DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs::Header& image_header,
+                                       const cv::Size& size) {
+  cloud_.clear();
+  if (!cloud || params_.pose_source == PoseSource::kPnp) return cloud_;
   try {
     std::optional<geometry_msgs::TransformStamped> to_image;
     if (!cloud->header.frame_id.empty() && cloud->header.frame_id != image_header.frame_id) {
@@ -598,7 +600,8 @@ Cloud DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs
       // waiting: the transform is usually static, and a frame without its cloud still gets PnP.
       to_image = tf_buffer_->lookupTransform(image_header.frame_id, cloud->header.frame_id, cloud->header.stamp);
     }
-    return CloudFromMessage(*cloud, size, to_image ? &to_image->transform : nullptr);
+    CloudFromMessage(*cloud, size, to_image ? &to_image->transform : nullptr, cloud_);
+    return cloud_;
   } catch (const tf2::TransformException& e) {
     Warn("cloud tf", "point cloud not used (PnP alone): no transform " + image_header.frame_id + " <- " +
                          cloud->header.frame_id + " at the cloud's stamp: " + e.what());
@@ -606,7 +609,8 @@ Cloud DetectorNodelet::CloudFor(const PointCloud2ConstPtr& cloud, const std_msgs
     ++counts_.bad_clouds;
     Fail("cloud", std::string("point cloud not used (PnP alone): ") + e.what());
   }
-  return {};
+  cloud_.clear();
+  return cloud_;
 }
 
 void DetectorNodelet::Measure(ArucoTag& tag, const std::optional<CameraModel>& camera, const Cloud& cloud) {
