@@ -3,6 +3,7 @@
 // bench_nodelet). The reference is OpenCV's own detector with its defaults; every ratio is a
 // detector's time over that one's.
 //   opencv        cv::aruco::detectMarkers, OpenCV's default parameters (the reference)
+//   opencv_subpix the same with CORNER_REFINE_SUBPIX (ours_subpix's reference for accuracy)
 //   opencv_aruco3 the same with useAruco3Detection (OpenCV >= 4.6 only)
 //   apriltag_d1   AprilTag 3 (libapriltag), tag36h11, quad_decimate 1, 1 thread: tag36h11 sets only
 //   apriltag_d2   the same at quad_decimate 2
@@ -251,6 +252,11 @@ Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
   const auto opencv_defaults = cv::aruco::DetectorParameters::create();
   l.methods.push_back({"opencv", "OpenCV detectMarkers, defaults",
                        [=](const Frame& f) { return OpenCvDetect(f.grey, dictionary, opencv_defaults); }});
+  // The same with OpenCV's sub-pixel corner refinement, to hold ours_subpix against.
+  const auto opencv_subpix = cv::aruco::DetectorParameters::create();
+  opencv_subpix->cornerRefinementMethod = cv::aruco::CORNER_REFINE_SUBPIX;
+  l.methods.push_back({"opencv_subpix", "OpenCV detectMarkers, subpix refinement",
+                       [=](const Frame& f) { return OpenCvDetect(f.grey, dictionary, opencv_subpix); }});
 #ifdef ARUCOTAG_BENCH_ARUCO3
   const auto aruco3 = cv::aruco::DetectorParameters::create();
   aruco3->useAruco3Detection = true;

@@ -20,7 +20,7 @@ TARGET_RATIO, TARGET_VIDEO_RATIO = 0.25, 0.10  # time / OpenCV default
 TARGET_TAG36H11_RECALL = 0.95
 TARGET_CORNER_MEDIAN_PX, TARGET_CORNER_P95_PX = 0.03, 0.2
 TARGET_NODELET, TARGET_POSE_US = 1.1, 50.0
-ORDER = ("opencv", "opencv_aruco3", "apriltag_d1", "apriltag_d2", "ours", "ours_fast", "ours_video",
+ORDER = ("opencv", "opencv_subpix", "opencv_aruco3", "apriltag_d1", "apriltag_d2", "ours", "ours_fast", "ours_video",
          "ours_subpix", "pipeline", "nodelet")
 PEERS = ("opencv", "opencv_aruco3", "apriltag_d1", "apriltag_d2")
 
@@ -135,6 +135,14 @@ def targets(results):
                 misses.append(f"{s['name']}: ours corner error median {ours['corner_error_median_px']:.3f} px, "
                               f"p95 {ours['corner_error_p95_px']:.3f} px (target <= {TARGET_CORNER_MEDIAN_PX}, "
                               f"<= {TARGET_CORNER_P95_PX})")
+        # Sub-pixel refinement must beat no refinement, and be at least OpenCV's own subpix.
+        subpix, opencv_subpix = s["methods"].get("ours_subpix"), s["methods"].get("opencv_subpix")
+        if s.get("exact_corners") and subpix and subpix.get("corner_errors") and opencv_subpix:
+            bound = min(ref["corner_error_p95_px"], opencv_subpix["corner_error_p95_px"])
+            if subpix["corner_error_p95_px"] > bound:
+                misses.append(f"{s['name']}: ours subpix corner error p95 {subpix['corner_error_p95_px']:.3f} px, above "
+                              f"OpenCV's {ref['corner_error_p95_px']:.3f} (none) or {opencv_subpix['corner_error_p95_px']:.3f} "
+                              f"(subpix)")
         d, c = s["methods"].get("nodelet"), s.get("core_side_by_side") or s["methods"].get("pipeline")
         if d is not None and c:
             s["nodelet_over_core"] = d["median_ms"] / c["median_ms"]
