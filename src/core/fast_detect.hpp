@@ -16,14 +16,6 @@
 
 namespace arucotag::internal {
 
-/// A square candidate in full-resolution pixels, corners clockwise as cv::aruco orders them.
-struct Quad {
-  std::array<cv::Point2f, 4> corners{};
-  int level = 0;      ///< pyramid level it was found at (0 = full resolution)
-  float area = 0.0f;  ///< px^2, full resolution
-  int perimeter = 0;  ///< contour length at its level, px
-};
-
 /// A marker found in a frame, before the id lists are applied.
 struct Found {
   int id = -1;

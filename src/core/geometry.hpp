@@ -4,8 +4,10 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <vector>
 
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 namespace arucotag::internal {
 
@@ -38,6 +40,19 @@ inline float MeanSide(const std::array<cv::Point2f, 4>& quad) {
   float s = 0.0f;
   for (int i = 0; i < 4; ++i) s += static_cast<float>(cv::norm(quad[i] - quad[(i + 1) % 4]));
   return 0.25f * s;
+}
+
+/// Centre of a quad: the mean of its corners.
+inline cv::Point2f Centre(const std::array<cv::Point2f, 4>& c) { return (c[0] + c[1] + c[2] + c[3]) * 0.25f; }
+
+/// Integer bounding box of a quad's corners.
+inline cv::Rect Bounds(const std::array<cv::Point2f, 4>& c) {
+  return cv::boundingRect(std::vector<cv::Point2f>(c.begin(), c.end()));
+}
+
+/// `r` grown by `pad` px on every side, clipped to a frame of size `frame`.
+inline cv::Rect Grow(const cv::Rect& r, int pad, const cv::Size& frame) {
+  return cv::Rect(r.x - pad, r.y - pad, r.width + 2 * pad, r.height + 2 * pad) & cv::Rect(cv::Point(0, 0), frame);
 }
 
 /// Whether two quads' corners, matched in some cyclic order, are closer than `limit` (px, RMS over

@@ -1,0 +1,359 @@
+// Candidates of the fast path. cv::aruco::detectMarkers thresholds the whole frame with three window
+// sizes (3, 13 and 23 px) and traces every contour of each binary image; on a cluttered 1080p frame
+// that is about 70% of its instructions (callgrind). Here each scale gets one window, and the larger
+// windows run on a downscaled frame, where they cost a quarter or a sixteenth:
+// - level 0 (full resolution), 7 px window: small and sharp markers down to cv::aruco's smallest,
+//   searched in horizontal strips, one per core;
+// - level 1 (half resolution), 11 px window (22 px of the frame): what cv::aruco's 13 and 23 px
+//   windows add, i.e. blurred and low-contrast markers, and markers across a strip boundary;
+// - level 2 (quarter resolution), 5 px window: large markers, cheaply enough to run on every frame
+//   while tracking.
+// Quads are filtered as cv::aruco's _findMarkerContours filters them and merged within each level as
+// _filterTooCloseCandidates merges them. Around one marker, OpenCvQuadsNear runs cv::aruco's own
+// windows, for the corners it would start refinement from. Which regions and levels a frame
+// searches is fast_detect.cpp's choice.
+#include "candidates.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+
+#include <opencv2/imgproc.hpp>
+#include <opencv2/imgproc/imgproc_c.h>  // cvFindContours: contours in one arena, not a vector each
+
+namespace arucotag::internal {
+
+namespace {
+
+double Scale(int level) { return 1.0 / (1 << level); }
+
+// Level pixel -> full-resolution pixel (pixel centres at integers: a level-l pixel covers 2^l
+// full-resolution pixels).
+cv::Point2f ToFull(const cv::Point2f& p, int level) {
+  const float s = static_cast<float>(1 << level);
+  return (p + cv::Point2f(0.5f, 0.5f)) * s - cv::Point2f(0.5f, 0.5f);
+}
+
+int MaxDim(const cv::Size& s) { return std::max(s.width, s.height); }
+
+// cv::adaptiveThreshold(src, MEAN_C, THRESH_BINARY_INV, W, constant) written into `out`, which
+// gets a 1-pixel zero frame around it (what cv::findContours pads with). Same decision as OpenCV:
+// black (255) where src + floor(constant) <= round(box mean), edges replicated. The box sums are
+// 16-bit, row by row, so the compiler vectorises every loop; OpenCV's version compares through a
+// per-pixel table look-up.
+template <int W>
+void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
+  constexpr int r = W / 2;
+  constexpr int area = W * W;
+  const int w = src.cols, h = src.rows;
+  out.create(h + 2, w + 2, CV_8UC1);
+  out.row(0).setTo(0);
+  out.row(h + 1).setTo(0);
+  std::vector<uint16_t> cols(w + 2 * r, 0);
+  uint16_t* col = cols.data() + r;
+  const auto row = [&](int y) { return src.ptr<uchar>(std::min(std::max(y, 0), h - 1)); };
+  for (int k = -r; k <= r; ++k) {
+    const uchar* in = row(k);
+    for (int x = 0; x < w; ++x) col[x] = static_cast<uint16_t>(col[x] + in[x]);
+  }
+  for (int y = 0; y < h; ++y) {
+    if (y > 0) {
+      const uchar* add = row(y + r);
+      const uchar* sub = row(y - r - 1);
+      for (int x = 0; x < w; ++x) col[x] = static_cast<uint16_t>(col[x] + add[x] - sub[x]);
+    }
+    for (int k = 1; k <= r; ++k) {
+      col[-k] = col[0];
+      col[w - 1 + k] = col[w - 1];
+    }
+    const uchar* __restrict in = src.ptr<uchar>(y);
+    uchar* __restrict dst = out.ptr<uchar>(y + 1);
+    dst[0] = 0;
+    dst[w + 1] = 0;
+    const uint16_t* __restrict c = col - r;
+    for (int x = 0; x < w; ++x) {
+      uint16_t sum = 0;
+      for (int k = 0; k < W; ++k) sum = static_cast<uint16_t>(sum + c[x + k]);
+      const uint16_t lhs = static_cast<uint16_t>((in[x] + delta) * (2 * area));
+      const uint16_t rhs = static_cast<uint16_t>(2 * sum + area);
+      dst[x + 1] = lhs <= rhs ? 255 : 0;
+    }
+  }
+}
+
+void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
+  const int delta = cvFloor(constant);
+  // 16-bit headroom: (255 + delta) * 2 * W^2 must fit.
+  const bool fits = delta >= 0 && (255 + delta) * 2 * window * window <= 65535;
+  if (fits && window == 5) return BoxThreshold<5>(src, delta, out);
+  if (fits && window == 7) return BoxThreshold<7>(src, delta, out);
+  if (fits && window == 11) return BoxThreshold<11>(src, delta, out);
+  cv::Mat binary;
+  cv::adaptiveThreshold(src, binary, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, constant);
+  cv::copyMakeBorder(binary, out, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+}
+
+// Quads in a thresholded region (`binary` with its 1-pixel zero frame; `roi` where it lies in its
+// level), filtered exactly as cv::aruco's _findMarkerContours filters them, plus: a quad closer than
+// `inner` to an edge of the region that is not the image's is dropped (that marker belongs to a
+// neighbouring region, or its blob goes on outside). With `near` (level pixels), only contours
+// whose bounding box is within `tolerance` of it on every side are fitted.
+void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level_size, const SearchTask& task,
+                     int inner, const DetectorConfig& config, std::vector<Quad>& out, const cv::Rect* near = nullptr,
+                     int tolerance = 0) {
+  CvMat header = cvMat(binary);
+  // One arena per thread, emptied (not freed) before each use.
+  thread_local const cv::MemStorage storage(cvCreateMemStorage(0));
+  cvClearMemStorage(storage);
+  CvSeq* first = nullptr;
+  cvFindContours(&header, storage, &first, sizeof(CvContour), CV_RETR_LIST, CV_CHAIN_APPROX_NONE, cvPoint(-1, -1));
+
+  // Image border as cv::aruco applies it.
+  const int border = task.level == 0 ? config.min_distance_to_border
+                                     : std::max(1, static_cast<int>(std::ceil(config.min_distance_to_border *
+                                                                              Scale(task.level))));
+  const int left = roi.x > 0 ? roi.x + inner : border;
+  const int top = roi.y > 0 ? roi.y + inner : border;
+  const int right = roi.x + roi.width < level_size.width ? roi.x + roi.width - 1 - inner : level_size.width - 1 - border;
+  const int bottom =
+      roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border;
+
+  thread_local std::vector<cv::Point> contour, approx;
+  for (CvSeq* seq = first; seq; seq = seq->h_next) {
+    const int n = seq->total;
+    if (n < task.min_perimeter || n > task.max_perimeter) continue;
+    const cv::Rect box = reinterpret_cast<CvContour*>(seq)->rect;
+    if (near) {
+      const cv::Rect b = box + roi.tl();
+      if (std::abs(b.x - near->x) > tolerance || std::abs(b.y - near->y) > tolerance ||
+          std::abs(b.x + b.width - near->x - near->width) > tolerance ||
+          std::abs(b.y + b.height - near->y - near->height) > tolerance) {
+        continue;
+      }
+    }
+    // A quad whose bounding box is this thin has a side under cv::aruco's min_corner_distance
+    // anyway (and no decodable cells): skip the polygon fit for the clutter's lines and arcs.
+    if (16 * std::min(box.width, box.height) < n) continue;
+    contour.resize(n);
+    cvCvtSeqToArray(seq, contour.data(), CV_WHOLE_SEQ);
+    // Likewise a contour enclosing almost nothing (a diagonal line, an arc) cannot be a quad with
+    // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps.
+    if (128.0 * std::fabs(cv::contourArea(contour)) < double(n) * n) continue;
+    cv::approxPolyDP(contour, approx, n * config.polygonal_approx_accuracy_rate, true);
+    if (approx.size() != 4 || !cv::isContourConvex(approx)) continue;
+    double min_dist_sq = 1e300;
+    for (int j = 0; j < 4; ++j) {
+      const cv::Point d = approx[j] - approx[(j + 1) % 4];
+      min_dist_sq = std::min(min_dist_sq, double(d.x) * d.x + double(d.y) * d.y);
+    }
+    const double min_corner = n * config.min_corner_distance_rate;
+    if (min_dist_sq < min_corner * min_corner) continue;
+    bool outside = false;
+    for (auto& p : approx) {
+      p += roi.tl();
+      outside |= p.x < left || p.y < top || p.x > right || p.y > bottom;
+    }
+    if (outside) continue;
+
+    Quad quad;
+    quad.level = task.level;
+    quad.perimeter = static_cast<int>(std::lround(n / Scale(task.level)));
+    for (int j = 0; j < 4; ++j) quad.corners[j] = ToFull(cv::Point2f(approx[j]), task.level);
+    // Clockwise, as _reorderCandidatesCorners makes it.
+    const cv::Point2f d1 = quad.corners[1] - quad.corners[0], d2 = quad.corners[2] - quad.corners[0];
+    if (double(d1.x) * d2.y - double(d1.y) * d2.x < 0.0) std::swap(quad.corners[1], quad.corners[3]);
+    quad.area = static_cast<float>(cv::contourArea(std::vector<cv::Point2f>(quad.corners.begin(), quad.corners.end())));
+    out.push_back(quad);
+  }
+}
+
+// Quads of one task: its region thresholded (the region's edges replicated, so quads within the
+// window's reach of an inner edge are dropped), then QuadsFromBinary.
+void FindQuads(const Pyramid& pyramid, const SearchTask& task, const DetectorConfig& config,
+               std::vector<Quad>& out) {
+  const cv::Mat& level_image = pyramid.images[task.level];
+  const cv::Rect roi = task.roi & cv::Rect(0, 0, level_image.cols, level_image.rows);
+  if (roi.width < task.window + 2 || roi.height < task.window + 2) return;
+  cv::Mat binary;
+  Threshold(level_image(roi), task.window, config.adaptive_thresh_constant, binary);
+  QuadsFromBinary(binary, roi, level_image.size(), task, task.window / 2 + 2, config, out);
+}
+
+}  // namespace
+
+// A task at `level` over `roi` (level pixels) with cv::aruco's perimeter limits (rates of the full
+// frame), at reduced levels nothing below their min_side.
+SearchTask MakeTask(const DetectorConfig& config, const cv::Size& frame, int level, const cv::Rect& roi,
+                    int window) {
+  SearchTask task;
+  task.level = level;
+  task.window = window > 0 ? window : kLevelSearch[level].window;
+  task.roi = roi;
+  const double full = MaxDim(frame);
+  task.min_perimeter = static_cast<int>(config.min_marker_perimeter_rate * full * Scale(level));
+  task.min_perimeter = std::max(task.min_perimeter, 4 * kLevelSearch[level].min_side);
+  task.max_perimeter = static_cast<int>(config.max_marker_perimeter_rate * full * Scale(level));
+  return task;
+}
+
+void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
+              std::vector<Quad>& quads) {
+  std::vector<std::vector<Quad>> per_task(tasks.size());
+  cv::parallel_for_(cv::Range(0, static_cast<int>(tasks.size())), [&](const cv::Range& range) {
+    for (int i = range.start; i < range.end; ++i) FindQuads(pyramid, tasks[i], config, per_task[i]);
+  });
+  for (auto& q : per_task) quads.insert(quads.end(), q.begin(), q.end());
+}
+
+// Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates: their corners (in
+// some cyclic order) closer, RMS, than `rate` of the smaller perimeter.
+bool TooClose(const Quad& a, const Quad& b, double rate) {
+  return CornersWithin(a.corners, b.corners, rate * std::min(a.perimeter, b.perimeter));
+}
+
+// cv::aruco's _filterTooCloseCandidates within each pyramid level: of quads too close to each
+// other only the biggest is decoded. Quads of different levels are all kept (a coarse quad of a
+// noisy marker may be the only good one); duplicates across levels are resolved after decoding.
+std::vector<Quad> MergeQuads(std::vector<Quad> quads, double rate) {
+  const size_t n = quads.size();
+  std::vector<cv::Point2f> centre(n);
+  for (size_t i = 0; i < n; ++i) {
+    centre[i] = Centre(quads[i].corners);
+  }
+  std::vector<size_t> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return centre[a].x < centre[b].x; });
+  std::vector<size_t> parent(n);
+  std::iota(parent.begin(), parent.end(), 0);
+  const auto root = [&](size_t i) {
+    while (parent[i] != i) i = parent[i] = parent[parent[i]];
+    return i;
+  };
+  for (size_t a = 0; a < n; ++a) {
+    const size_t i = order[a];
+    for (size_t b = a + 1; b < n; ++b) {
+      const size_t j = order[b];
+      // The centres differ by the mean corner offset, which is at most the RMS one.
+      if (centre[j].x - centre[i].x > rate * quads[i].perimeter) break;
+      if (quads[i].level != quads[j].level) continue;
+      if (std::abs(centre[j].y - centre[i].y) > rate * std::min(quads[i].perimeter, quads[j].perimeter)) continue;
+      if (TooClose(quads[i], quads[j], rate)) parent[root(i)] = root(j);
+    }
+  }
+  std::vector<int> best(n, -1);
+  for (size_t i = 0; i < n; ++i) {
+    const size_t r = root(i);
+    const int k = best[r];
+    if (k < 0 || quads[i].area >= quads[k].area) best[r] = static_cast<int>(i);
+  }
+  std::vector<Quad> merged;
+  for (size_t i = 0; i < n; ++i) {
+    if (best[i] >= 0) merged.push_back(quads[best[i]]);
+  }
+  return merged;
+}
+
+// The quads cv::aruco's candidate search (every configured threshold window, same contour filters)
+// finds around `corners` (full resolution), run on a small window around them: those whose
+// bounding box matches the quad's within a few pixels, appended to `found`. Box means come from an
+// integral image of the neighbourhood (frame edges replicated as cv::adaptiveThreshold does), so
+// the binary image is the whole frame's there. Only a ring around the quad's outline is
+// thresholded: its inside is set black, which leaves the outer contour as it is and skips tracing
+// the marker's bits.
+void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const std::array<cv::Point2f, 4>& corners,
+                     std::vector<Quad>& found) {
+  const cv::Mat& grey = pyramid.images[0];
+  const cv::Size frame = grey.size();
+  const cv::Rect whole(cv::Point(0, 0), frame);
+  const cv::Rect box = Bounds(corners);
+  const float side = MeanSide(corners);
+  // Outlines of one marker at different windows lie within a few pixels of each other.
+  const int tolerance = std::max(3, static_cast<int>(std::ceil(0.06f * side)));
+  const cv::Rect roi = Grow(box, tolerance + 2, frame);
+  const int reach = (config.adaptive_thresh_win_size_max | 1) / 2 + 1;
+  const cv::Rect ext(roi.x - reach, roi.y - reach, roi.width + 2 * reach, roi.height + 2 * reach);
+  const cv::Rect inside = ext & whole;
+  thread_local cv::Mat patch, sums, binary;
+  cv::copyMakeBorder(grey(inside), patch, inside.y - ext.y, ext.y + ext.height - inside.y - inside.height,
+                     inside.x - ext.x, ext.x + ext.width - inside.x - inside.width, cv::BORDER_REPLICATE);
+  cv::integral(patch, sums, CV_32S);
+
+  // Per row of the region, the span deep inside the marker (its quad shrunk towards the centre).
+  const cv::Point2f centre = Centre(corners);
+  const float shrink = 1.0f - 2.0f * (tolerance + 2) / std::max(side, 1.0f);
+  std::vector<cv::Point2f> core;
+  for (const auto& c : corners) core.push_back(centre + (c - centre) * shrink);
+  std::vector<std::pair<int, int>> span(roi.height, {1, 0});
+  if (shrink > 0.2f) {
+    for (int yy = 0; yy < roi.height; ++yy) {
+      const float y = static_cast<float>(roi.y + yy);
+      float lo = 1e30f, hi = -1e30f;
+      for (int e = 0; e < 4; ++e) {
+        const cv::Point2f a = core[e], b = core[(e + 1) % 4];
+        if ((a.y - y) * (b.y - y) > 0.0f || a.y == b.y) continue;
+        const float x = a.x + (b.x - a.x) * (y - a.y) / (b.y - a.y);
+        lo = std::min(lo, x);
+        hi = std::max(hi, x);
+      }
+      if (lo <= hi) span[yy] = {static_cast<int>(std::ceil(lo)) - roi.x, static_cast<int>(std::floor(hi)) - roi.x};
+    }
+  }
+
+  const int delta = cvFloor(config.adaptive_thresh_constant);
+  for (int window = config.adaptive_thresh_win_size_min; window <= config.adaptive_thresh_win_size_max;
+       window += config.adaptive_thresh_win_size_step) {
+    const int w = window | 1;  // cv::aruco makes even windows odd
+    const int r = w / 2, area = w * w;
+    binary.create(roi.height + 2, roi.width + 2, CV_8UC1);
+    binary.setTo(0);
+    for (int yy = 0; yy < roi.height; ++yy) {
+      // Row yy of the region is row yy + reach of the patch; the integral has one more row/column.
+      const int* top = sums.ptr<int>(yy + reach - r);
+      const int* bottom = sums.ptr<int>(yy + reach + r + 1);
+      const uchar* in = patch.ptr<uchar>(yy + reach) + reach;
+      uchar* out = binary.ptr<uchar>(yy + 1) + 1;
+      const int* __restrict b0 = bottom + reach - r;
+      const int* __restrict b1 = bottom + reach + r + 1;
+      const int* __restrict t0 = top + reach - r;
+      const int* __restrict t1 = top + reach + r + 1;
+      for (int xx = 0; xx < roi.width; ++xx) {
+        const int sum = b1[xx] - b0[xx] - t1[xx] + t0[xx];
+        out[xx] = (in[xx] + delta) * 2 * area <= 2 * sum + area ? 255 : 0;
+      }
+      const auto [lo, hi] = span[yy];
+      if (lo <= hi) std::fill(out + std::max(lo, 0), out + std::min(hi, roi.width - 1) + 1, uchar(255));
+    }
+    QuadsFromBinary(binary, roi, frame, MakeTask(config, frame, 0, roi, w), 1, config, found, &box, tolerance);
+  }
+}
+
+// The corners cv::aruco would start from for this marker: of the quads its candidate search finds
+// there (OpenCvQuadsNear), the biggest of those that coincide with it, as _filterTooCloseCandidates
+// keeps it. Corners come back in `decoded`'s order (rotation already applied); returns false when no
+// configured window gives a quad there (a marker only the reduced levels see).
+bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad& decoded) {
+  thread_local std::vector<Quad> found;
+  found.clear();
+  OpenCvQuadsNear(pyramid, config, decoded.corners, found);
+  const Quad* best = nullptr;
+  for (const Quad& q : found) {
+    if (TooClose(q, decoded, config.min_marker_distance_rate) && (!best || q.area > best->area)) best = &q;
+  }
+  if (!best) return false;
+  int shift = 0;
+  double closest = 1e300;
+  for (int fc = 0; fc < 4; ++fc) {
+    double d = 0.0;
+    for (int c = 0; c < 4; ++c) d += cv::norm(best->corners[(c + fc) % 4] - decoded.corners[c]);
+    if (d < closest) {
+      closest = d;
+      shift = fc;
+    }
+  }
+  Quad exact = *best;
+  for (int c = 0; c < 4; ++c) exact.corners[c] = best->corners[(c + shift) % 4];
+  decoded = exact;
+  return true;
+}
+
+}  // namespace arucotag::internal

@@ -1,0 +1,78 @@
+// Candidate search of the fast path (internal to arucotag_core): the frame pyramid, the search
+// tasks that say which region of which level is thresholded with which window, and the quads they
+// find, filtered and merged as cv::aruco does it. See candidates.cpp.
+#pragma once
+
+#include <array>
+#include <vector>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <arucotag/detector.hpp>
+
+#include "geometry.hpp"
+
+namespace arucotag::internal {
+
+/// Pyramid levels: full, half and quarter resolution.
+constexpr int kLevels = 3;
+
+/// One threshold window per level, and the smallest marker side (px at that level) a reduced level
+/// looks for: below it the finer level's contour is the one to trust.
+struct LevelSearch {
+  int window;
+  int min_side;
+};
+constexpr LevelSearch kLevelSearch[kLevels] = {{7, 0}, {11, 6}, {5, 12}};
+
+/// A square candidate in full-resolution pixels, corners clockwise as cv::aruco orders them.
+struct Quad {
+  std::array<cv::Point2f, 4> corners{};
+  int level = 0;      ///< pyramid level it was found at (0 = full resolution)
+  float area = 0.0f;  ///< px^2, full resolution
+  int perimeter = 0;  ///< contour length at its level, px
+};
+
+/// The frame at full, half and quarter resolution (INTER_AREA), level 0 sharing the caller's pixels.
+struct Pyramid {
+  std::array<cv::Mat, kLevels> images;
+  void Build(const cv::Mat& grey) {
+    images[0] = grey;
+    for (int l = 1; l < kLevels; ++l) {
+      cv::resize(images[l - 1], images[l], cv::Size(images[l - 1].cols / 2, images[l - 1].rows / 2), 0, 0,
+                 cv::INTER_AREA);
+    }
+  }
+};
+
+/// One region of one pyramid level to search, with its threshold window and contour length limits.
+struct SearchTask {
+  int level = 0;
+  int window = 0;
+  cv::Rect roi;  // level pixels
+  int min_perimeter = 0, max_perimeter = 0;  // level pixels
+};
+
+/// A task at `level` over `roi` (level pixels) with cv::aruco's perimeter limits; window 0 is the level's.
+SearchTask MakeTask(const DetectorConfig& config, const cv::Size& frame, int level, const cv::Rect& roi,
+                    int window = 0);
+
+/// Runs every task (in parallel) and appends the quads they find to `quads`.
+void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
+              std::vector<Quad>& quads);
+
+/// Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates at this `rate`.
+bool TooClose(const Quad& a, const Quad& b, double rate);
+
+/// cv::aruco's _filterTooCloseCandidates within each pyramid level: the biggest of quads too close.
+std::vector<Quad> MergeQuads(std::vector<Quad> quads, double rate);
+
+/// Appends the quads cv::aruco's own candidate search (every configured window) finds at `corners`.
+void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const std::array<cv::Point2f, 4>& corners,
+                     std::vector<Quad>& found);
+
+/// Replaces `decoded`'s corners with those cv::aruco would start from there; false if it finds none.
+bool CornersAsOpenCv(const Pyramid& pyramid, const DetectorConfig& config, Quad& decoded);
+
+}  // namespace arucotag::internal

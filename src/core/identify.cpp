@@ -1,0 +1,328 @@
+// Identification of the fast path's candidates. Each candidate is decoded on the full-resolution
+// frame the way cv::aruco decodes it (perspective removal, Otsu, border bits, dictionary look-up);
+// small ones that reading rejects get cv::aruco's contours and then the second-chance decoder
+// (decode_small.cpp). For the edge-fit refinement, which keeps its start where it cannot measure an
+// edge, each marker's starting corners are then re-derived as cv::aruco's own (its three windows, on
+// a small window around the marker), so the result is the full search's; for cv::aruco's sub-pixel
+// refinement any nearby start converges to the same corner (RefineCorner).
+#include "identify.hpp"
+
+#include "decode_small.hpp"
+#include "refine_corner.hpp"
+
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+
+#include <opencv2/imgproc.hpp>
+
+namespace arucotag::internal {
+
+namespace {
+
+// Bits set in x (no popcnt instruction in the x86-64 baseline this is built for).
+inline int PopCount(uint64_t x) {
+  x = x - ((x >> 1) & 0x5555555555555555ULL);
+  x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
+  x = (x + (x >> 4)) & 0x0f0f0f0f0f0f0f0fULL;
+  return static_cast<int>((x * 0x0101010101010101ULL) >> 56);
+}
+
+// A dictionary's codes (each rotation) as 64-bit words, so that a look-up is one XOR and a
+// popcount per rotation instead of one per byte. Cached per thread for the last dictionary seen.
+struct DictionaryCodes {
+  const uchar* data = nullptr;
+  int rows = 0, cols = 0;
+  uint64_t checksum = 0;
+  std::vector<uint64_t> code;   // 4 per marker: rotations 0..3
+};
+
+const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
+  thread_local DictionaryCodes cache;
+  const cv::Mat& list = dictionary.bytesList;
+  const int nbytes = (dictionary.markerSize * dictionary.markerSize + 7) / 8;
+  uint64_t checksum = 0;
+  for (int m = 0; m < list.rows; m += std::max(1, list.rows / 16)) {
+    for (int k = 0; k < 4 * nbytes; ++k) checksum = checksum * 131 + list.ptr(m)[k];
+  }
+  if (cache.data == list.data && cache.rows == list.rows && cache.cols == list.cols && cache.checksum == checksum) {
+    return cache;
+  }
+  cache = DictionaryCodes();
+  cache.data = list.data;
+  cache.rows = list.rows;
+  cache.cols = list.cols;
+  cache.checksum = checksum;
+  // Every predefined dictionary (the only ones a Detector builds) has at most 7x7 = 49 bits.
+  CV_Assert(nbytes <= 8);
+  cache.code.resize(static_cast<size_t>(list.rows) * 4);
+  for (int m = 0; m < list.rows; ++m) {
+    for (int r = 0; r < 4; ++r) {
+      uint64_t v = 0;
+      for (int k = 0; k < nbytes; ++k) v = (v << 8) | list.ptr(m)[r * nbytes + k];
+      cache.code[static_cast<size_t>(m) * 4 + r] = v;
+    }
+  }
+  return cache;
+}
+
+// cv::aruco's _extractBits + _getBorderErrors + Dictionary::identify for a black marker, without
+// its per-candidate allocations: the canonical image is sampled straight from the homography
+// (nearest pixel, as warpPerspective INTER_NEAREST; outside the frame reads 0 like its constant
+// border), Otsu's threshold is OpenCV's formula, cells are majority votes of their inner pixels,
+// and the look-up compares the packed bits with the dictionary's four rotations as identify does.
+bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, const cv::aruco::Dictionary& dictionary,
+              const cv::aruco::DetectorParameters& p, int& id, int& rotation) {
+  constexpr int kMaxCells = 16;  // 14x14 is the largest predefined dictionary with its border
+  const int marker_size = dictionary.markerSize;
+  const int with_borders = marker_size + 2 * p.markerBorderBits;
+  if (with_borders > kMaxCells) return false;
+  const int cell = p.perspectiveRemovePixelPerCell;
+  const int margin = static_cast<int>(p.perspectiveRemoveIgnoredMarginPerCell * cell);
+  const int size = with_borders * cell;
+  // Canonical pixel (x, y) is (u, v) = (x, y) / (size - 1) of the unit square.
+  const cv::Matx33d h = SquareToQuad(corners) * cv::Matx33d(1.0 / (size - 1), 0, 0, 0, 1.0 / (size - 1), 0, 0, 0, 1);
+  thread_local std::vector<uchar> canonical;
+  canonical.resize(static_cast<size_t>(size) * size);
+  const int cols = grey.cols, rows = grey.rows;
+  const uchar* pixels = grey.data;
+  const size_t step = grey.step;
+  for (int y = 0; y < size; ++y) {
+    const double x0 = h(0, 1) * y + h(0, 2), y0 = h(1, 1) * y + h(1, 2), w0 = h(2, 1) * y + h(2, 2);
+    uchar* out = &canonical[static_cast<size_t>(y) * size];
+    for (int x = 0; x < size; ++x) {
+      double w = w0 + h(2, 0) * x;
+      w = w ? 1.0 / w : 0.0;
+      const int sx = cvRound((x0 + h(0, 0) * x) * w);
+      const int sy = cvRound((y0 + h(1, 0) * x) * w);
+      out[x] = (unsigned(sx) < unsigned(cols) && unsigned(sy) < unsigned(rows)) ? pixels[sy * step + sx] : 0;
+    }
+  }
+
+  uchar bits[kMaxCells][kMaxCells] = {};
+  // Spread of the inner part (half a cell trimmed): too flat means all one colour, no Otsu.
+  double sum = 0.0, sum_sq = 0.0;
+  for (int y = cell / 2; y < size - cell / 2; ++y) {
+    for (int x = cell / 2; x < size - cell / 2; ++x) {
+      const double v = canonical[static_cast<size_t>(y) * size + x];
+      sum += v;
+      sum_sq += v * v;
+    }
+  }
+  const double n_inner = double(size - 2 * (cell / 2)) * (size - 2 * (cell / 2));
+  const double mean = sum / n_inner;
+  const double stddev = std::sqrt(std::max(0.0, sum_sq / n_inner - mean * mean));
+  if (stddev < p.minOtsuStdDev) {
+    for (auto& row : bits) std::fill(std::begin(row), std::end(row), mean > 127 ? 1 : 0);
+  } else {
+    int histogram[256] = {0};
+    for (uchar v : canonical) ++histogram[v];
+    // OpenCV's getThreshVal_Otsu_8u.
+    const double scale = 1.0 / canonical.size();
+    double mu = 0.0;
+    for (int i = 0; i < 256; ++i) mu += i * double(histogram[i]);
+    mu *= scale;
+    double mu1 = 0.0, q1 = 0.0, max_sigma = 0.0;
+    int threshold = 0;
+    for (int i = 0; i < 256; ++i) {
+      const double p_i = histogram[i] * scale;
+      mu1 *= q1;
+      q1 += p_i;
+      const double q2 = 1.0 - q1;
+      if (std::min(q1, q2) < FLT_EPSILON || std::max(q1, q2) > 1.0 - FLT_EPSILON) continue;
+      mu1 = (mu1 + i * p_i) / q1;
+      const double mu2 = (mu - q1 * mu1) / q2;
+      const double sigma = q1 * q2 * (mu1 - mu2) * (mu1 - mu2);
+      if (sigma > max_sigma) {
+        max_sigma = sigma;
+        threshold = i;
+      }
+    }
+    const int inner = cell - 2 * margin;
+    for (int y = 0; y < with_borders; ++y) {
+      for (int x = 0; x < with_borders; ++x) {
+        int white = 0;
+        for (int v = 0; v < inner; ++v) {
+          const uchar* px = &canonical[static_cast<size_t>(y * cell + margin + v) * size + x * cell + margin];
+          for (int u = 0; u < inner; ++u) white += px[u] > threshold;
+        }
+        bits[y][x] = white > inner * inner / 2;
+      }
+    }
+  }
+  int border_errors = 0;
+  const int b = p.markerBorderBits;
+  for (int y = 0; y < with_borders; ++y) {
+    for (int k = 0; k < b; ++k) border_errors += bits[y][k] + bits[y][with_borders - 1 - k];
+  }
+  for (int x = b; x < with_borders - b; ++x) {
+    for (int k = 0; k < b; ++k) border_errors += bits[k][x] + bits[with_borders - 1 - k][x];
+  }
+  if (border_errors > static_cast<int>(marker_size * marker_size * p.maxErroneousBitsInBorderRate)) return false;
+
+  // Dictionary::getByteListFromBits (rotation 0 only, which is all identify compares) + identify.
+  const int nbytes = (marker_size * marker_size + 7) / 8;
+  uchar packed[(kMaxCells * kMaxCells + 7) / 8] = {};
+  int bit = 0, byte = 0;
+  for (int y = 0; y < marker_size; ++y) {
+    for (int x = 0; x < marker_size; ++x) {
+      packed[byte] = static_cast<uchar>((packed[byte] << 1) | bits[y + b][x + b]);
+      if (++bit == 8) {
+        bit = 0;
+        ++byte;
+      }
+    }
+  }
+  const int max_correction = static_cast<int>(double(dictionary.maxCorrectionBits) * p.errorCorrectionRate);
+  const DictionaryCodes& codes = CodesOf(dictionary);
+  uint64_t candidate = 0;
+  for (int k = 0; k < nbytes; ++k) candidate = (candidate << 8) | packed[k];
+  const uint64_t* code = codes.code.data();
+  for (int m = 0; m < dictionary.bytesList.rows; ++m, code += 4) {
+    int best = marker_size * marker_size + 1, best_rotation = -1;
+    for (int r = 0; r < 4; ++r) {
+      const int distance = PopCount(code[r] ^ candidate);
+      if (distance < best) {
+        best = distance;
+        best_rotation = r;
+      }
+    }
+    if (best <= max_correction) {
+      id = m;
+      rotation = best_rotation;
+      return true;
+    }
+  }
+  return false;
+}
+
+// Decodes a small quad cv::aruco's reading rejected (`decoded` and `id` set on success). At this
+// size a one-pixel difference of the contour flips cells of its 4-px-per-cell reading, and
+// cv::aruco's windows (3, 13, 23 px) trace slightly different contours than this search's: those
+// are traced on the quad's neighbourhood and read the same way first, so that every marker the full
+// search decodes is decoded here too. What still fails gets the second-chance decoder, on this
+// contour and on cv::aruco's (`second_chance` set: cv::aruco has no corners of its own there).
+bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
+                     const cv::aruco::DetectorParameters& p, const Quad& quad, Quad& decoded, int& id,
+                     bool& second_chance) {
+  const cv::Mat& grey = pyramid.images[0];
+  std::vector<Quad> traced;
+  OpenCvQuadsNear(pyramid, config, quad.corners, traced);
+  // Of quads that coincide, cv::aruco reads only the biggest (_filterTooCloseCandidates, MergeQuads
+  // here); reading every window's contour gives a texture more chances to pass for a code (measured:
+  // 17 extra false detections over the test photos with wrong dictionaries). Biggest first.
+  std::vector<Quad> local = MergeQuads(std::move(traced), config.min_marker_distance_rate);
+  std::sort(local.begin(), local.end(), [](const Quad& a, const Quad& b) { return a.area > b.area; });
+  for (const Quad& q : local) {
+    int rotation = 0;
+    if (!Identify(grey, q.corners, dictionary, p, id, rotation)) continue;
+    decoded = q;
+    std::rotate(decoded.corners.begin(), decoded.corners.begin() + 4 - rotation, decoded.corners.end());
+    // Read on contours cv::aruco may never have read: held to the second chance's standard.
+    if (!PatternExplainsPixels(grey, dictionary, id, p.markerBorderBits, decoded.corners)) continue;
+    return true;
+  }
+  local.insert(local.begin(), quad);
+  for (const Quad& q : local) {
+    SmallMarker marker;
+    if (!DecodeSmall(grey, q.corners, dictionary, p.markerBorderBits, p.detectInvertedMarker, marker)) continue;
+    decoded = q;
+    decoded.corners = marker.corners;
+    id = marker.id;
+    second_chance = true;
+    return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+// Decodes every candidate (small ones cv::aruco's reading rejects with DecodeSmallQuad), keeps one
+// marker where several levels found the same one (cv::aruco's reading over the second chance, then
+// the finest level's, then the biggest), and refines: kSubpix with RefineCorner; for kEdge the
+// corners cv::aruco would start from (CornersAsOpenCv) are returned for Detect's edge fit, except
+// for a marker no full-resolution window finds (reduced levels only), whose scaled corners get
+// RefineCorner first so the edge fit starts within its reach, and a second-chance marker, whose
+// decoder's corners are the edge fit's start (a 5 px cornerSubPix window spans most of it).
+std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads, const DetectorConfig& config,
+                          const cv::aruco::Dictionary& dictionary, const cv::aruco::DetectorParameters& p) {
+  const cv::Mat& grey = pyramid.images[0];
+  std::vector<int> ids(quads.size(), -1);
+  std::vector<Quad> decoded(quads);
+  std::vector<char> second_chance(quads.size(), 0);
+  cv::parallel_for_(cv::Range(0, static_cast<int>(quads.size())), [&](const cv::Range& range) {
+    for (int i = range.start; i < range.end; ++i) {
+      int id = -1, rotation = 0;
+      if (!Identify(grey, quads[i].corners, dictionary, p, id, rotation)) continue;
+      auto& corners = decoded[i].corners;
+      std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
+      ids[i] = id;
+    }
+  });
+  // Small quads left over, except the cells of markers already read and the outlines around them
+  // (their quiet zones): every marker of a few cells per side has several, and a second look at
+  // each costs more than the search.
+  std::vector<int> fragile;
+  for (size_t i = 0; i < quads.size(); ++i) {
+    if (ids[i] >= 0 || !(MeanSide(quads[i].corners) < kSmallCandidateMaxSide)) continue;
+    const cv::Point2f centre = Centre(quads[i].corners);
+    const std::vector<cv::Point2f> outline(quads[i].corners.begin(), quads[i].corners.end());
+    bool overlaps = false;
+    for (size_t k = 0; k < quads.size() && !overlaps; ++k) {
+      if (ids[k] < 0) continue;
+      const auto& c = decoded[k].corners;
+      overlaps = decoded[k].area > quads[i].area
+                     ? cv::pointPolygonTest(std::vector<cv::Point2f>(c.begin(), c.end()), centre, false) > 0.0
+                     : cv::pointPolygonTest(outline, Centre(c), false) > 0.0;
+    }
+    if (!overlaps) fragile.push_back(static_cast<int>(i));
+  }
+  cv::parallel_for_(cv::Range(0, static_cast<int>(fragile.size())), [&](const cv::Range& range) {
+    for (int f = range.start; f < range.end; ++f) {
+      const int i = fragile[f];
+      int id = -1;
+      bool second = false;
+      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second)) {
+        ids[i] = id;
+        second_chance[i] = second;
+      }
+    }
+  });
+  std::vector<size_t> kept;
+  for (size_t i = 0; i < quads.size(); ++i) {
+    if (ids[i] < 0) continue;
+    bool duplicate = false;
+    for (size_t& k : kept) {
+      if (ids[k] != ids[i] || !TooClose(decoded[k], decoded[i], p.minMarkerDistanceRate)) continue;
+      const Quad &a = decoded[i], &b = decoded[k];
+      const bool better = second_chance[i] != second_chance[k]
+                              ? !second_chance[i]
+                              : a.level < b.level || (a.level == b.level && a.area > b.area);
+      if (better) k = i;
+      duplicate = true;
+      break;
+    }
+    if (!duplicate) kept.push_back(i);
+  }
+  const bool subpix = config.corner_refinement == CornerRefinement::kSubpix;
+  std::vector<Found> found(kept.size());
+  cv::parallel_for_(cv::Range(0, static_cast<int>(kept.size())), [&](const cv::Range& range) {
+    for (int i = range.start; i < range.end; ++i) {
+      Quad q = decoded[kept[i]];
+      const bool second = second_chance[kept[i]];
+      // cornerSubPix lands within a few hundredths of a pixel from any start a pixel or two away;
+      // the edge fit keeps its start where it cannot measure an edge, so it gets cv::aruco's.
+      const bool exact = !subpix && (second || CornersAsOpenCv(pyramid, config, q));
+      found[i].id = ids[kept[i]];
+      found[i].corners = q.corners;
+      if (exact) continue;
+      for (auto& c : found[i].corners) {
+        c = RefineCorner(grey, c, p.cornerRefinementWinSize, p.cornerRefinementMaxIterations,
+                         p.cornerRefinementMinAccuracy);
+      }
+    }
+  });
+  return found;
+}
+
+}  // namespace arucotag::internal
