@@ -20,9 +20,9 @@ namespace arucotag::internal {
 /// decoding has 5 px per cell or more and a rejection is a real one.
 constexpr float kSmallCandidateMaxSide = 30.0f;
 
-/// At most this many of a frame's rejected candidates get the second chance (DecodeRejected), the
-/// biggest first: each costs 0.05-0.2 ms, and a noisy or textured frame gives hundreds. The test
-/// frames (real photos, rendered scenes) give at most 46.
+/// At most this many of a frame's rejected candidates get the second chance (DecodeRejected, and
+/// the fast path's Decode), the biggest first: each costs 0.05-0.2 ms, and a noisy or textured frame
+/// gives hundreds. The test frames (real photos, rendered scenes) give at most 46.
 constexpr size_t kMaxSmallCandidates = 96;
 
 /// Whether a candidate quad with this mean side (px) gets the second chance: under
