@@ -8,8 +8,9 @@
 #include <opencv2/imgproc.hpp>
 
 #include "decode_small.hpp"
-#include "geometry.hpp"
 #include "fast_detect.hpp"
+#include "geometry.hpp"
+#include "refine_corner.hpp"
 
 namespace arucotag {
 
@@ -307,14 +308,25 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       // detectMarkers writes into the parameters it is given (4.6 resets the ArUco3 fields): give it a
       // copy so concurrent calls on one Detector never race.
       const auto parameters = cv::makePtr<cv::aruco::DetectorParameters>(*detector.parameters());
+      // Sub-pixel refinement is the core's (below), with a window that fits the marker's cells.
+      const bool subpix = detector.config().corner_refinement == CornerRefinement::kSubpix;
+      if (subpix) parameters->cornerRefinementMethod = cv::aruco::CORNER_REFINE_NONE;
       std::vector<std::vector<cv::Point2f>> rejected;
       cv::aruco::detectMarkers(grey, detector.dictionary(), corners, ids, parameters, rejected);
       for (size_t i = 0; i < ids.size(); ++i) add(ids[i], corners[i].data());
       // Tiny markers whose cells cv::aruco's 4-px-per-cell reading blurs: the fast path decodes them
       // too, so both paths report the same ids.
       for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
-                                                         *detector.parameters())) {
+                                                         *parameters)) {
         add(marker.id, marker.corners.data());
+      }
+      if (subpix) {
+        const int cells = detector.dictionary()->markerSize + 2 * parameters->markerBorderBits;
+        for (auto& tag : tags) {
+          internal::RefineMarkerCorners(grey, tag.corners, cells, parameters->cornerRefinementWinSize,
+                                        parameters->cornerRefinementMaxIterations,
+                                        parameters->cornerRefinementMinAccuracy);
+        }
       }
     }
     const DetectorConfig& config = detector.config();
