@@ -32,9 +32,11 @@ const std::vector<std::string> kDictionaryNames = {
 // 197 windows), so only configs that would stall detection are refused.
 constexpr int kMaxThresholdWindow = 1001;
 constexpr int kMaxThresholdWindows = 200;
-// Bound on the side of a candidate unwarped for decoding (px): 8 times what dynamic_reconfigure
-// allows with a 7x7 dictionary and one border bit.
-constexpr long long kMaxUnwarpedSide = 1440;
+// Bound on the side of a candidate unwarped for decoding (px): twice what dynamic_reconfigure allows
+// with a 7x7 dictionary and one border bit (9 cells of 20 px). Every candidate of a frame is unwarped:
+// at 1440 px (8 times) a frame of a few hundred candidates took 35-60 ms in the release build, 4-6 s
+// under the fuzzer's sanitizers (fuzz_config).
+constexpr long long kMaxUnwarpedSide = 360;
 // Bound on the perimeter rates (perimeter / the frame's longer side): twice what dynamic_reconfigure
 // allows (8). A quad inside the frame is at most 4 longer sides around, so any rate past 4 already
 // means "no limit"; past the bound, rate * side overflows the detectors' int perimeters

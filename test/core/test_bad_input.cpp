@@ -176,6 +176,12 @@ TEST(BadInput, DetectorConfigsThatWouldStallDetectionAreRefused) {
   config.marker_border_bits = 162;
   config.perspective_remove_pixel_per_cell = 98;
   EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("perspective_remove_pixel_per_cell"), std::string::npos);
+  // regress_timeout-*: 7x7 cells of 60 px (a 540 px square unwarped for every candidate) took 4-6 s a
+  // frame under the sanitizers.
+  config = {};
+  config.dictionary = "DICT_7X7_1000";
+  config.perspective_remove_pixel_per_cell = 60;
+  EXPECT_NE(ErrorOf([&] { Detector d(config); }).find("perspective_remove_pixel_per_cell"), std::string::npos);
   // dynamic_reconfigure's extremes stay accepted: 197 windows up to 199 px, 20 px per cell of 7x7.
   config = {};
   config.dictionary = "DICT_7X7_1000";
