@@ -2,6 +2,8 @@
 // corners, and the edge fit its start for markers that no cv::aruco window finds (identify.cpp).
 #include "refine_corner.hpp"
 
+#include "geometry.hpp"
+
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
@@ -150,9 +152,7 @@ int MarkerCornerHalfWindow(float side, int cells, int configured) {
 
 void RefineMarkerCorners(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells, int configured_half,
                          int max_iterations, double epsilon) {
-  float side = 0.0f;
-  for (int i = 0; i < 4; ++i) side += static_cast<float>(cv::norm(corners[(i + 1) % 4] - corners[i])) / 4.0f;
-  const int half = MarkerCornerHalfWindow(side, cells, configured_half);
+  const int half = MarkerCornerHalfWindow(MeanSide(corners), cells, configured_half);
   for (auto& c : corners) c = RefineCorner(grey, c, half, max_iterations, epsilon);
 }
 

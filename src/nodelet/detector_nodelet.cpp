@@ -529,8 +529,7 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
 
   const cv::Size size = input.pixels.size();
   const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
-  static const Cloud kNoCloud;
-  const Cloud& points = params_.use_point_cloud ? CloudFor(NearestCloud(header.stamp), header, size) : kNoCloud;
+  const Cloud& points = CloudFor(params_.use_point_cloud ? NearestCloud(header.stamp) : nullptr, header, size);
   if (params_.use_point_cloud) ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
   for (auto& tag : tags) Measure(tag, camera, points);
   if (!points.empty() && !tags.empty() &&
