@@ -164,7 +164,8 @@ int Main(int argc, char** argv) {
   if (!csv_path.empty() && !csv) throw Error("cannot write " + csv_path);
   if (csv) {
     std::fprintf(csv, "frame,range,obliquity,side_px,min_side_px,min_angle,noise,blur,corner_sigma,rms0,rms1,ambiguity,cloud_points,"
-                      "plane_rms,fused,cloud_err_ray,cloud_err_lateral");
+                      "plane_rms,fused,cloud_err_ray,cloud_err_lateral,sol0_rot_deg,sol1_rot_deg,ev_usable,ev_corners,ev_cloud,"
+                      "ev_angle0,ev_angle1,ev_normal_sigma");
     for (const char* m : kMethodNames) std::fprintf(csv, ",%s_rot_deg,%s_t_err,%s_nees_t,%s_nees_r", m, m, m, m);
     std::fprintf(csv, "\n");
   }
@@ -305,6 +306,12 @@ int Main(int argc, char** argv) {
       std::fprintf(csv, ",%d,%.5f,%d,%.5f,%.5f", cloud_only.cloud.points, cloud_only.cloud.plane_rms,
                    fused.pose_source == PoseSource::kFused, cloud_error.dot(ray),
                    cv::norm(cloud_error - cloud_error.dot(ray) * ray));
+      // Both IPPE solutions' rotation errors and what the fused choice weighed, to study its rule.
+      const FusedEvidence evidence = WeighFusedEvidence(fused);
+      const double sol_rot[2] = {RotationDeg(pnp.pnp.rvec[0], truth.rvec),
+                                 pnp.pnp.solutions > 1 ? RotationDeg(pnp.pnp.rvec[1], truth.rvec) : std::nan("")};
+      std::fprintf(csv, ",%.4f,%.4f,%d,%.5f,%.5f,%.5f,%.5f,%.5f", sol_rot[0], sol_rot[1], evidence.usable ? 1 : 0,
+                   evidence.corners, evidence.cloud, evidence.angle[0], evidence.angle[1], evidence.normal_sigma);
       for (int m = 0; m < kMethods; ++m) {
         const double rot = poses[m] && poses[m]->HasPose() ? RotationDeg(poses[m]->rvec, truth.rvec) : std::nan("");
         const double dt = poses[m] && poses[m]->HasPose() ? cv::norm(poses[m]->tvec - truth.tvec) : std::nan("");

@@ -1,5 +1,7 @@
 #pragma once
 
+#include <array>
+#include <limits>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -131,15 +133,28 @@ bool EstimatePoseFromPointCloud(const cv::Mat& cloud, const cv::Size& image_size
 bool EstimatePoseFromPointCloud(const pcl::PointCloud<pcl::PointXYZ>& cloud, ArucoTag& tag,
                                 const CloudPoseOptions& options = {});
 
+/// What FusedChoice weighs, for a tag with two PnP solutions and a cloud plane (usable false
+/// otherwise): chi-square differences between solution 1 and solution 0 (positive: the evidence
+/// favours solution 0, the corners' pick, for `corners`; solution 1 for `cloud`), and the angles
+/// (rad) between the cloud's normal and each solution's, with the normal's standard deviation.
+struct FusedEvidence {
+  bool usable = false;
+  double corners = 0.0;
+  double cloud = 0.0;
+  std::array<double, 2> angle{{0.0, 0.0}};
+  double normal_sigma = std::numeric_limits<double>::quiet_NaN();
+};
+FusedEvidence WeighFusedEvidence(const ArucoTag& tag);
+
 /// Which of the tag's two PnP solutions (0 = the corners' pick) the fused pose takes. Each
 /// measurement weighs in with a chi-square difference between the solutions under its own noise:
 /// the corners' from the two reprojection errors (corner noise estimated from the better one's
 /// residuals, at least 0.1 px), the cloud's from the angles between its plane normal and each
 /// solution's, over the normal's standard deviation (plane residuals and point count, capped for
 /// correlated stereo noise, plus 5 degrees of systematic error in quadrature). The cloud overrides the corners only when its evidence exceeds theirs
-/// by 9 (three sigma), the normals differ by 2 degrees or more, and the plane lies within 15 degrees
-/// of the solution it favours (further from both, it is not this face). 0 without a plane or a
-/// second solution.
+/// by 9 (three sigma), the normals differ by 2 degrees or more, the plane lies within 15 degrees
+/// of the solution it favours or twice the normal's standard deviation if that is more (further, it
+/// is not this face). 0 without a plane or a second solution.
 int FusedChoice(const ArucoTag& tag);
 
 /// Sets the tag's pose (rvec, tvec, distance, yaw, pose_source, reprojection_error,

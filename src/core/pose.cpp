@@ -467,9 +467,16 @@ constexpr double kMinNormalMargin = 2.0 * CV_PI / 180.0;
 // added in quadrature. Without it the sample recording's fused poses flipped 13 times where PnP
 // alone flipped none.
 constexpr double kNormalSystematic = 5.0 * CV_PI / 180.0;
-// A plane further than this from both solutions is not this marker's face (the ground or a post
-// behind a small marker, a cloud misregistered by motion): it says nothing about the choice.
+// A plane further than this from the solution it favours, or twice its own standard deviation if
+// that is more, is not this marker's face (the ground or a post behind a small marker, a cloud
+// misregistered by motion): it says nothing about the choice. A fixed 15 degrees alone turned away
+// a stereo plane 20 degrees off at 9 m, where its noise was 33 degrees, and left PnP's flip (bench_pose
+// seed 7, frame 571); with twice the sigma, 4000 frames (seeds 7, 11, 13, 17) flip 0 / 0 / 3 / 74 times
+// per range bin against 0 / 2 / 5 / 74 with 15 degrees and PnP's 0 / 5 / 7 / 74 (IPPE solutions
+// picked; bench_pose --csv). One flip of the fused choice is left in both (seed 17, frame 303): a
+// correlated stereo patch tilted a 17 px tag's plane at 7.9 m onto the wrong solution.
 constexpr double kMaxPlaneDisagreement = 15.0 * CV_PI / 180.0;
+constexpr double kPlaneDisagreementSigmas = 2.0;
 
 // Standard deviation (rad) of the fitted plane's normal: depth noise (the plane residuals, at least
 // the camera's model at that range) over the
@@ -642,32 +649,41 @@ bool EstimatePoseFromPointCloud(const pcl::PointCloud<pcl::PointXYZ>& cloud, Aru
                                    tag, options);
 }
 
-int FusedChoice(const ArucoTag& tag) {
+FusedEvidence WeighFusedEvidence(const ArucoTag& tag) {
   // IPPE's two solutions differ mainly by a reflection of the face normal about the line of sight.
   // Each measurement's evidence is a chi-square difference between the two solutions under its own
   // noise: the corners' from the reprojection errors (8 residuals, 6 unknowns: a solution's RMS is
   // about half the corner noise), the cloud's from the angles between its normal and each
-  // solution's. The cloud overrides the corners' pick only when its evidence clearly outweighs
-  // theirs, so a noisy or stale cloud does not flip a good PnP pose, and a confident plane fixes
-  // an ambiguous one.
-  if (!tag.cloud.has_normal || tag.pnp.solutions < 2) return 0;
+  // solution's.
+  FusedEvidence evidence;
+  if (!tag.cloud.has_normal || tag.pnp.solutions < 2) return evidence;
   const double e0 = tag.pnp.rms[0], e1 = tag.pnp.rms[1];
-  if (!std::isfinite(e0) || !std::isfinite(e1)) return 0;
+  if (!std::isfinite(e0) || !std::isfinite(e1)) return evidence;
   // When the corners mislead, the wrong solution has absorbed the noise and the better fit's
   // residual understates it: the floor is the corner noise of real images.
   const double corner_sigma = std::max(2.0 * std::min(e0, e1), kMinCornerSigma);
-  const double corners = 8.0 * (e1 * e1 - e0 * e0) / (corner_sigma * corner_sigma);
-  double angle[2];
+  evidence.corners = 8.0 * (e1 * e1 - e0 * e0) / (corner_sigma * corner_sigma);
   for (int i = 0; i < 2; ++i) {
     cv::Matx33d r;
     cv::Rodrigues(tag.pnp.rvec[i], r);
     const double c = cv::Vec3d(r(0, 2), r(1, 2), r(2, 2)).dot(tag.cloud.normal);
-    angle[i] = std::acos(std::max(-1.0, std::min(1.0, c)));
+    evidence.angle[i] = std::acos(std::max(-1.0, std::min(1.0, c)));
   }
-  if (angle[0] - angle[1] < kMinNormalMargin || angle[1] > kMaxPlaneDisagreement) return 0;
-  const double sigma = std::isfinite(tag.cloud.normal_sigma) ? tag.cloud.normal_sigma : CV_PI;
-  const double cloud = (angle[0] * angle[0] - angle[1] * angle[1]) / (sigma * sigma);
-  return cloud - corners > kDecisiveEvidence ? 1 : 0;
+  evidence.normal_sigma = std::isfinite(tag.cloud.normal_sigma) ? tag.cloud.normal_sigma : CV_PI;
+  evidence.cloud = (evidence.angle[0] * evidence.angle[0] - evidence.angle[1] * evidence.angle[1]) /
+                   (evidence.normal_sigma * evidence.normal_sigma);
+  evidence.usable = true;
+  return evidence;
+}
+
+int FusedChoice(const ArucoTag& tag) {
+  // The cloud overrides the corners' pick only when its evidence clearly outweighs theirs, so a
+  // noisy or stale cloud does not flip a good PnP pose, and a confident plane fixes an ambiguous one.
+  const FusedEvidence evidence = WeighFusedEvidence(tag);
+  if (!evidence.usable) return 0;
+  const double plane_limit = std::max(kMaxPlaneDisagreement, kPlaneDisagreementSigmas * evidence.normal_sigma);
+  if (evidence.angle[0] - evidence.angle[1] < kMinNormalMargin || evidence.angle[1] > plane_limit) return 0;
+  return evidence.cloud - evidence.corners > kDecisiveEvidence ? 1 : 0;
 }
 
 namespace {

@@ -131,17 +131,18 @@ TEST(PointCloud, FusedPicksTheIppeSolutionTheCloudAgreesWith) {
   EXPECT_FALSE(s.tag.HasPose());
 }
 
-// Two IPPE-like solutions 40 degrees apart and a cloud plane, to pin what FusedChoice weighs.
+// Two IPPE-like solutions 2 x half_turn_deg apart (40 by default) and a cloud plane, to pin what
+// FusedChoice weighs.
 struct Choice {
   ArucoTag tag;
   cv::Vec3d normal[2];
-  Choice(double e0, double e1) {
+  Choice(double e0, double e1, double half_turn_deg = 20.0) {
     tag.side_length = 0.15;
     tag.pnp.valid = true;
     tag.pnp.solutions = 2;
     // Facing the camera (marker z towards it), turned +-20 degrees about the vertical.
     for (int i = 0; i < 2; ++i) {
-      const double a = (i == 0 ? 20.0 : -20.0) * CV_PI / 180.0;
+      const double a = (i == 0 ? half_turn_deg : -half_turn_deg) * CV_PI / 180.0;
       const cv::Matx33d turn(std::cos(a), 0, std::sin(a), 0, 1, 0, -std::sin(a), 0, std::cos(a));
       cv::Rodrigues(turn * cv::Matx33d(1, 0, 0, 0, -1, 0, 0, 0, -1), tag.pnp.rvec[i]);
     }
@@ -182,6 +183,22 @@ TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
   noisy.tag.cloud.plane_rms = 0.06;
   noisy.tag.cloud.normal_sigma = 30.0 * CV_PI / 180.0;
   EXPECT_EQ(FusedChoice(noisy.tag), 0);
+
+  // A far, steep marker (solutions 100 degrees apart, as at 9 m and 50 degrees off head-on) and a
+  // stereo plane with 33 degrees of noise on its normal that lies 20 degrees from solution 1: within
+  // its own noise of that solution, and far clearer evidence than the corners' (bench_pose seed 7,
+  // frame 571, flipped when the plane had to lie within a fixed 15 degrees).
+  Choice steep(0.089, 0.128, 50.0);
+  // Turned from solution 1 further away from solution 0, in the plane of the two normals.
+  const cv::Vec3d away = cv::normalize(steep.normal[0].dot(steep.normal[1]) * steep.normal[1] - steep.normal[0]);
+  const double off = 20.0 * CV_PI / 180.0;
+  steep.tag.cloud.normal = cv::normalize(std::cos(off) * steep.normal[1] + std::sin(off) * away);
+  steep.tag.cloud.normal_sigma = 33.0 * CV_PI / 180.0;
+  EXPECT_EQ(FusedChoice(steep.tag), 1);
+  // The same plane 70 degrees from solution 1 is beyond twice its noise: another surface, no say.
+  const double far_off = 70.0 * CV_PI / 180.0;
+  steep.tag.cloud.normal = cv::normalize(std::cos(far_off) * steep.normal[1] + std::sin(far_off) * away);
+  EXPECT_EQ(FusedChoice(steep.tag), 0);
 
   // No plane, or one solution: the corners' pick.
   Choice flat(0.030, 0.032);
