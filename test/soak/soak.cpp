@@ -108,12 +108,13 @@ double Percentile(std::vector<double> v, double q);
 // The manager's RSS at rest: frames stopped, every frame sent answered (or none for 1 s), then two
 // of the nodelet's trims (malloc_trim once a second) later, the lowest of 20 samples 100 ms apart.
 // While frames flow, RSS is a sawtooth: each trim drops it by the arena pages freed since the last,
-// and it climbs again by 60-80 MB before the next as 15 MB clouds and receive buffers are freed and
+// and it climbs again by 40-80 MB before the next as 15 MB clouds and receive buffers are freed and
 // allocated elsewhere, with 0-14 clouds in flight on top. A lowest sample once a second then depends
 // on where the samples fall against the trims: one 150 s run, sampled at ten phases, gave growths from
 // -37 to +15 MB while glibc's heap in use (mallinfo2) had the same lowest value in both windows to
-// 0.05 MB. At rest only what the nodelet keeps is in use (its ~cloud_cache_size clouds, its buffers),
-// so growth at rest is growth.
+// 0.05 MB. At rest the heap in use is what the nodelet keeps (its ~cloud_cache_size clouds, its
+// buffers): the same to 0.03 MB at both ends of a run. RSS at rest can still differ by what glibc
+// leaves resident at the top of its thread arenas, which malloc_trim does not trim (README, Reliability).
 struct RestRss {
   double mb = 0.0, spread = 0.0;  // lowest sample, and highest minus lowest
 };
