@@ -1,0 +1,16 @@
+// Internals of the whole-pattern corner fit (refine_pattern.cpp) that the tests check.
+#pragma once
+
+#include <array>
+#include <cstddef>
+
+#include <opencv2/core.hpp>
+
+namespace arucotag::internal {
+
+/// How many pixels RefineCornersOnPattern would fit for a marker of `cells` cells (border included)
+/// at `corners` in `grey`: every pixel of the marker and its quiet-zone strip, every other one for
+/// cells of 4 px or more, and at most about 6000 for markers over about 95 px (a sparser lattice).
+size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv::Point2f, 4>& corners);
+
+}  // namespace arucotag::internal
