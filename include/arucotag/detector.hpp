@@ -134,9 +134,12 @@ class Detector {
   /// Thread-safe.
   void ResetTracking() const;
 
-  /// Frames this Detector searched whole, and frames it searched only where tracking pointed.
+  /// Frames this Detector searched whole, and frames it searched only where tracking pointed; of
+  /// the tracked markers, how many were read where they were predicted (without a search); and the
+  /// pixels thresholded and traced over all frames (at their pyramid level's resolution).
   struct TrackingStats {
     unsigned long long full_searches = 0, tracked_frames = 0;
+    unsigned long long read_at_prediction = 0, searched_pixels = 0;
   };
   TrackingStats tracking_stats() const;
 

@@ -236,6 +236,7 @@ void Detector::ResetTracking() const {
   tracking_->markers.clear();
   tracking_->thumbnail.release();
   tracking_->frames = 0;
+  tracking_->since_full = 0;
 }
 
 Detector::TrackingStats Detector::tracking_stats() const {
@@ -244,6 +245,8 @@ Detector::TrackingStats Detector::tracking_stats() const {
   std::lock_guard<std::mutex> lock(tracking_->mutex);
   stats.full_searches = tracking_->full_searches;
   stats.tracked_frames = tracking_->tracked_frames;
+  stats.read_at_prediction = tracking_->read_at_prediction;
+  stats.searched_pixels = tracking_->searched_pixels;
   return stats;
 }
 
@@ -298,7 +301,11 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
     // go to cv::aruco, which returns nothing for them.
     constexpr int kMinFastPathSide = 32;
-    if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
+    const bool fast = internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide &&
+                      grey.rows >= kMinFastPathSide;
+    // Whether each tag's refinement confirmed it (the tracked ones are then read where predicted next frame).
+    std::vector<char> anchored;  // char: written from parallel_for_
+    if (fast) {
       // A moved-from Detector has no tracking state: it still detects, frame by frame.
       for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
                                                     *detector.parameters(), detector.tracking_.get())) {
@@ -332,6 +339,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       }
     }
     const DetectorConfig& config = detector.config();
+    anchored.assign(tags.size(), 1);
     if (config.corner_refinement == CornerRefinement::kEdge) {
       // Tags are independent: refine them on all cores (tens of microseconds each).
       const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
@@ -351,11 +359,12 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
         for (int k = range.start; k < range.end; ++k) {
           ArucoTag& tag = tags[small[k].second];
-          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
-                                 tag.corners);
+          anchored[small[k].second] = RefineCornersOnPattern(
+              grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits), tag.corners);
         }
       });
     }
+    if (fast && config.tracking) internal::UpdateTracked(detector.tracking_.get(), tags, anchored);
     return tags;
   } catch (const cv::Exception& e) {
     throw Error(std::string("Detect: OpenCV cannot run this configuration on a ") + std::to_string(frame.cols) + "x" +
