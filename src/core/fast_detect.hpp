@@ -20,6 +20,7 @@ namespace arucotag::internal {
 struct Found {
   int id = -1;
   std::array<cv::Point2f, 4> corners{};
+  float blur = -1.0f;  ///< read where tracking predicted it: its pattern fit's blur variance last frame (< 0: none)
 };
 
 /// What one frame leaves for the next.
@@ -31,6 +32,7 @@ struct TrackedMarker {
   /// Its refinement converged last frame: next frame it is read where it is predicted, without a
   /// search (its region is searched when it is not).
   bool anchored = false;
+  float blur = -1.0f;  ///< its pattern fit's blur variance (px^2), < 0 without one
 };
 
 struct TrackingState {
@@ -69,9 +71,11 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
                               FrameReport* report = nullptr);
 
 /// After Detect's refinement: this frame's tracked markers take their refined corners (the next
-/// frame's prediction starts from them) and, with `anchored[i]` false for tags[i] (its refinement
-/// could not confirm it), are searched for next frame rather than read where predicted. Tags are
-/// matched to markers by id and position. No-op with `state` null.
-void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, const std::vector<char>& anchored);
+/// frame's prediction starts from them) and their pattern fit's blur variance (`blur[i]` of tags[i],
+/// < 0 without one) and, with `anchored[i]` false (its refinement could not confirm it), are searched
+/// for next frame rather than read where predicted. Tags are matched to markers by id and position.
+/// No-op with `state` null.
+void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, const std::vector<char>& anchored,
+                   const std::vector<float>& blur);
 
 }  // namespace arucotag::internal
