@@ -74,8 +74,8 @@ struct DetectorConfig {
   /// search; only the regions of markers that do not read there (or were lost a few frames ago) and a
   /// band along the image edge the scene moves in from are searched, and the whole frame once every
   /// full_search_interval frames: a marker that appears away from that edge is reported within
-  /// full_search_interval frames. A frame with nothing tracked, or that does not look like the next
-  /// one (other size or content, half the tracked markers missing), is searched whole. Set false, or
+  /// full_search_interval frames. A frame with nothing tracked, that does not look like the next one
+  /// (other size or content), or where a tracked marker is lost, is searched whole. Set false, or
   /// call ResetTracking(), when consecutive calls are unrelated images that may share markers.
   bool tracking = true;
   int full_search_interval = 8;  ///< frames, >= 1: the full scan's budget, a bound on the delay before a new marker is found

@@ -140,7 +140,9 @@ TEST(FastPath, NewLargeMarkerFoundWithinTheFullSearchInterval) {
   int found_at = -1;
   for (int k = 0; k < appear + interval; ++k) {
     const auto tags = Detect(sequence.Frame(k, large, appear), detector);
-    if (k < appear) EXPECT_EQ(Find(tags, 44), nullptr) << "frame " << k;
+    if (k < appear) {
+      EXPECT_EQ(Find(tags, 44), nullptr) << "frame " << k;
+    }
     if (found_at < 0 && Find(tags, 44)) found_at = k;
   }
   EXPECT_GE(detector.tracking_stats().tracked_frames, 2u);
