@@ -180,6 +180,7 @@ struct SetResult {
   double max_diff_to_full_px = 0.0;     // ours against the full search (fast_path off), same ids
   int ids_differing = 0;                // markers one of them reports and the other not
   unsigned long long full_searches = 0, tracked_frames = 0;  // ours_video
+  unsigned long long read_at_prediction = 0, searched_pixels = 0;  // ours_video
   int worst_new_marker_delay = -1;      // frames, ours_video on the sequence
   double mean_new_marker_delay = 0.0;
   double pose_us_total = 0.0;
@@ -378,6 +379,8 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
       const auto stats = l.video->tracking_stats();  // this pass's: the detector is fresh
       r.full_searches = stats.full_searches;
       r.tracked_frames = stats.tracked_frames;
+      r.read_at_prediction = stats.read_at_prediction;
+      r.searched_pixels = stats.searched_pixels;
     }
   }
   if (set.sequence && !all_cores && !first_truth.empty()) {
@@ -465,6 +468,7 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
         << ", \"exact_corners\": " << (r.exact_corners ? "true" : "false")
         << ", \"max_diff_to_full_px\": " << r.max_diff_to_full_px << ", \"ids_differing_from_full\": " << r.ids_differing
         << ", \"full_searches\": " << r.full_searches << ", \"tracked_frames\": " << r.tracked_frames
+        << ", \"read_at_prediction\": " << r.read_at_prediction << ", \"searched_pixels\": " << r.searched_pixels
         << ", \"worst_new_marker_delay\": " << r.worst_new_marker_delay
         << ", \"mean_new_marker_delay\": " << r.mean_new_marker_delay
         << ", \"pose_us_per_tag\": " << (r.poses ? r.pose_us_total / r.poses : 0.0) << ", \"poses\": " << r.poses

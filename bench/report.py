@@ -180,8 +180,13 @@ def notes(results):
                      f"{pattern_us:.0f} us per tag over {patterns} tags; \"ours, fast\" is ours without it.")
     for s in results["sets"]:
         if s["sequence"] and "ours_video" in s["methods"]:
-            lines.append(f"- {s['name']}, video mode: {s['tracked_frames']} frames searched by tracking, "
-                         f"{s['full_searches']} searched whole; latency to first detection of a marker after it "
+            frames = max(1, s['tracked_frames'] + s['full_searches'])
+            lines.append(f"- {s['name']}, video mode: {s['tracked_frames']} frames searched by tracking "
+                         f"({s.get('read_at_prediction', 0)} markers read where predicted, without a search), "
+                         f"{s['full_searches']} searched whole (the full scan's budget: one frame in "
+                         f"full_search_interval, or a marker lost); "
+                         f"{s.get('searched_pixels', 0) / frames / 1e3:.0f} k pixels searched a frame; "
+                         f"latency to first detection of a marker after it "
                          f"comes into view: mean {s['mean_new_marker_delay']:.2f}, worst {s['worst_new_marker_delay']} "
                          f"frame(s) (bound: full_search_interval {results['full_search_interval']}).")
     real = [s for s in results["sets"] if s["name"].startswith("real") and not s["name"].startswith("real warped")]

@@ -69,16 +69,16 @@ struct DetectorConfig {
   /// "contour" and "apriltag" they keep the decoder's corners (and "apriltag"'s candidate search
   /// does not find the steepest ones).
   bool fast_path = true;
-  /// With fast_path: successive Detect calls on one Detector are frames of one video stream. A frame
-  /// is then searched only around the previous frame's markers, at quarter resolution everywhere,
-  /// along the image edge the scene moves in from, and in one of full_search_interval rolling strips:
-  /// a marker that appears elsewhere, smaller than about 48 px, is reported within
-  /// full_search_interval frames (larger ones, and ones entering from that edge, at once). A frame
-  /// with nothing tracked, or that does not look like the next one (other size or content, half the
-  /// tracked markers missing), is searched whole. Set false, or call ResetTracking(), when
-  /// consecutive calls are unrelated images that may share markers.
+  /// With fast_path: successive Detect calls on one Detector are frames of one video stream. A marker
+  /// of the previous frame is then first read where it is predicted (constant velocity), without a
+  /// search; only the regions of markers that do not read there (or were lost a few frames ago) and a
+  /// band along the image edge the scene moves in from are searched, and the whole frame once every
+  /// full_search_interval frames: a marker that appears away from that edge is reported within
+  /// full_search_interval frames. A frame with nothing tracked, that does not look like the next one
+  /// (other size or content), or where a tracked marker is lost, is searched whole. Set false, or
+  /// call ResetTracking(), when consecutive calls are unrelated images that may share markers.
   bool tracking = true;
-  int full_search_interval = 8;  ///< frames, >= 1: bound on the delay before a new small marker is found
+  int full_search_interval = 8;  ///< frames, >= 1: the full scan's budget, a bound on the delay before a new marker is found
 
   /// With corner_refinement kEdge: markers whose mean side is shorter than this (px) are refined
   /// further by fitting their whole decoded pattern (RefineCornersOnPattern), 0.25-0.8 ms each. Below
@@ -134,9 +134,12 @@ class Detector {
   /// Thread-safe.
   void ResetTracking() const;
 
-  /// Frames this Detector searched whole, and frames it searched only where tracking pointed.
+  /// Frames this Detector searched whole, and frames it searched only where tracking pointed; of
+  /// the tracked markers, how many were read where they were predicted (without a search); and the
+  /// pixels thresholded and traced over all frames (at their pyramid level's resolution).
   struct TrackingStats {
     unsigned long long full_searches = 0, tracked_frames = 0;
+    unsigned long long read_at_prediction = 0, searched_pixels = 0;
   };
   TrackingStats tracking_stats() const;
 

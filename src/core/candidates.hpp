@@ -44,6 +44,22 @@ struct Pyramid {
                  cv::INTER_AREA);
     }
   }
+  /// Level 0, and level 1 only inside `regions` (level-1 pixels; elsewhere undefined): what a frame
+  /// searched in a few regions needs. Only for frames of even width and height, where the 2x
+  /// INTER_AREA of Build averages 2x2 blocks, so the regions get Build's pixels.
+  void BuildLevel1Regions(const cv::Mat& grey, const std::vector<cv::Rect>& regions) {
+    CV_Assert(grey.cols % 2 == 0 && grey.rows % 2 == 0);
+    images[0] = grey;
+    images[1].create(grey.rows / 2, grey.cols / 2, CV_8UC1);
+    for (int l = 2; l < kLevels; ++l) images[l].release();
+    const cv::Rect level1(0, 0, images[1].cols, images[1].rows);
+    for (const cv::Rect& region : regions) {
+      const cv::Rect r = region & level1;
+      if (r.empty()) continue;
+      cv::Mat out = images[1](r);
+      cv::resize(grey(cv::Rect(2 * r.x, 2 * r.y, 2 * r.width, 2 * r.height)), out, r.size(), 0, 0, cv::INTER_AREA);
+    }
+  }
 };
 
 /// One region of one pyramid level to search, with its threshold window and contour length limits.

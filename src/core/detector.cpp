@@ -236,6 +236,7 @@ void Detector::ResetTracking() const {
   tracking_->markers.clear();
   tracking_->thumbnail.release();
   tracking_->frames = 0;
+  tracking_->since_full = 0;
 }
 
 Detector::TrackingStats Detector::tracking_stats() const {
@@ -244,6 +245,8 @@ Detector::TrackingStats Detector::tracking_stats() const {
   std::lock_guard<std::mutex> lock(tracking_->mutex);
   stats.full_searches = tracking_->full_searches;
   stats.tracked_frames = tracking_->tracked_frames;
+  stats.read_at_prediction = tracking_->read_at_prediction;
+  stats.searched_pixels = tracking_->searched_pixels;
   return stats;
 }
 
@@ -288,21 +291,30 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     }
     std::vector<ArucoTag> tags;
     const auto add = [&](int id, const cv::Point2f* corners) {
-      if (!detector.Accepts(id)) return;
+      if (!detector.Accepts(id)) return false;
       ArucoTag tag;
       tag.id = id;
       std::copy_n(corners, 4, tag.corners.begin());
       tag.side_length = detector.SideLength(tag.id);
       tags.push_back(tag);
+      return true;
     };
     // The fast path's pyramid needs a few pixels per level; frames too small to hold a findable marker
     // go to cv::aruco, which returns nothing for them.
     constexpr int kMinFastPathSide = 32;
-    if (internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide && grey.rows >= kMinFastPathSide) {
+    const bool fast = internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide &&
+                      grey.rows >= kMinFastPathSide;
+    // Per tag: its pattern fit's blur variance (last frame's for a marker read where tracking
+    // predicted it, then this frame's) and whether its refinement confirmed it (a tracked marker is
+    // then read where predicted next frame). char: written from parallel_for_.
+    std::vector<char> anchored;
+    std::vector<float> blur;
+    if (fast) {
       // A moved-from Detector has no tracking state: it still detects, frame by frame.
       for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
                                                     *detector.parameters(), detector.tracking_.get())) {
-        add(found.id, found.corners.data());
+        if (!add(found.id, found.corners.data())) continue;
+        blur.push_back(found.blur);
       }
     } else {
       std::vector<std::vector<cv::Point2f>> corners;
@@ -332,8 +344,13 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       }
     }
     const DetectorConfig& config = detector.config();
+    blur.resize(tags.size(), -1.0f);
+    anchored.assign(tags.size(), 1);
     if (config.corner_refinement == CornerRefinement::kEdge) {
-      // Tags are independent: refine them on all cores (tens of microseconds each).
+      // Tags are independent: refine them on all cores (tens of microseconds each). Tracked markers
+      // read at their prediction too: a pattern fit started from the prediction itself, skipping the
+      // edge fit, was measured worse on the drive-by (corner error median 0.058 px, p95 0.46 px,
+      // against 0.022 and 0.058 from the edge fit).
       const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
       cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
         for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
@@ -350,12 +367,20 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       }
       cv::parallel_for_(cv::Range(0, static_cast<int>(small.size())), [&](const cv::Range& range) {
         for (int k = range.start; k < range.end; ++k) {
-          ArucoTag& tag = tags[small[k].second];
-          RefineCornersOnPattern(grey, MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits),
-                                 tag.corners);
+          const size_t i = small[k].second;
+          ArucoTag& tag = tags[i];
+          const cv::Mat black = MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits);
+          // A tracked marker's fit starts from last frame's blur (one start instead of four).
+          float variance = blur[i];
+          const bool ok = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance);
+          anchored[i] = ok;
+          blur[i] = ok ? variance : -1.0f;
         }
       });
+    } else {
+      std::fill(blur.begin(), blur.end(), -1.0f);
     }
+    if (fast && config.tracking) internal::UpdateTracked(detector.tracking_.get(), tags, anchored, blur);
     return tags;
   } catch (const cv::Exception& e) {
     throw Error(std::string("Detect: OpenCV cannot run this configuration on a ") + std::to_string(frame.cols) + "x" +

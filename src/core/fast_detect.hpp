@@ -20,6 +20,7 @@ namespace arucotag::internal {
 struct Found {
   int id = -1;
   std::array<cv::Point2f, 4> corners{};
+  float blur = -1.0f;  ///< read where tracking predicted it: its pattern fit's blur variance last frame (< 0: none)
 };
 
 /// What one frame leaves for the next.
@@ -28,6 +29,10 @@ struct TrackedMarker {
   std::array<cv::Point2f, 4> corners{};
   cv::Point2f velocity{0.0f, 0.0f};  ///< px/frame of the centre
   int missed = 0;  ///< frames since it was last found (its region is searched a while longer)
+  /// Its refinement converged last frame: next frame it is read where it is predicted, without a
+  /// search (its region is searched when it is not).
+  bool anchored = false;
+  float blur = -1.0f;  ///< its pattern fit's blur variance (px^2), < 0 without one
 };
 
 struct TrackingState {
@@ -35,10 +40,12 @@ struct TrackingState {
   cv::Size size;
   std::vector<TrackedMarker> markers;
   cv::Mat thumbnail;       ///< tiny copy of the last frame, to notice an unrelated image
-  int strip = 0;           ///< next rolling strip of the discovery search
+  int since_full = 0;      ///< frames since the last full search
   std::uint64_t frames = 0;
   // Counters for tests and the benchmark.
   std::uint64_t full_searches = 0, tracked_frames = 0;
+  std::uint64_t read_at_prediction = 0;  ///< markers found where predicted, without a search
+  std::uint64_t searched_pixels = 0;     ///< pixels thresholded and traced (FrameReport's), all frames
 };
 
 /// Statistics of one call, for tests and the benchmark.
@@ -46,6 +53,7 @@ struct FrameReport {
   bool full_search = false;  ///< the whole frame was searched at every scale
   int candidates = 0;        ///< quads decoded
   int searched_pixels = 0;   ///< pixels thresholded and traced (at their pyramid level's resolution)
+  int read_at_prediction = 0;  ///< tracked markers found where predicted, without a search
 };
 
 /// Whether the fast path serves this configuration: black markers with the edge-fit (kEdge) or
@@ -61,5 +69,13 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
                               const cv::Ptr<cv::aruco::Dictionary>& dictionary,
                               const cv::aruco::DetectorParameters& parameters, TrackingState* state,
                               FrameReport* report = nullptr);
+
+/// After Detect's refinement: this frame's tracked markers take their refined corners (the next
+/// frame's prediction starts from them) and their pattern fit's blur variance (`blur[i]` of tags[i],
+/// < 0 without one) and, with `anchored[i]` false (its refinement could not confirm it), are searched
+/// for next frame rather than read where predicted. Tags are matched to markers by id and position.
+/// No-op with `state` null.
+void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, const std::vector<char>& anchored,
+                   const std::vector<float>& blur);
 
 }  // namespace arucotag::internal

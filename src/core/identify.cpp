@@ -66,6 +66,8 @@ const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   return cache;
 }
 
+}  // namespace
+
 // cv::aruco's _extractBits + _getBorderErrors + Dictionary::identify for a black marker, without
 // its per-candidate allocations: the canonical image is sampled straight from the homography
 // (nearest pixel, as warpPerspective INTER_NEAREST; outside the frame reads 0 like its constant
@@ -195,6 +197,8 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   }
   return false;
 }
+
+namespace {
 
 // Decodes a small quad cv::aruco's reading rejected (`decoded` and `id` set on success). At this
 // size a one-pixel difference of the contour flips cells of its 4-px-per-cell reading, and

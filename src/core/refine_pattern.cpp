@@ -14,10 +14,12 @@
 #include <arucotag/refine.hpp>
 
 #include "geometry.hpp"
+#include "refine_corner.hpp"
 #include "refine_pattern.hpp"
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 #include <limits>
 #include <numeric>
 #include <vector>
@@ -560,7 +562,9 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
 
 // The fit itself, on a CV_32F image: refines `corners` in place (its pixel coordinates); false when
 // the result is not to be trusted.
-bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners) {
+// `blur` in: the blur variance to start from (a tracked marker's from the last frame), or < 0 to
+// try kStartBlurVariances; out: the fitted one.
+bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners, double& blur) {
   const int cells = black.rows;
   const std::array<Vec2, 4> start = corners;
   PatternFit fit(grey, black, cells, start);
@@ -577,12 +581,18 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
   }
   // Brightness, contrast and blur at the start: for each of a few blur widths a linear least-squares
   // fit of brightness and contrast with the corners held; the best of them starts the fit (starting
-  // from one fixed width cost one or two extra iterations on sharp or very blurred markers).
+  // from one fixed width cost one or two extra iterations on sharp or very blurred markers). A
+  // tracked marker starts from the width its last frame's fit found.
   {
     std::vector<float> cover;
     fit.Cover(start);
     double best = std::numeric_limits<double>::infinity();
-    for (const double variance : kStartBlurVariances) {
+    const double warm = std::min(blur, kMaxBlurVariance);
+    const bool warm_start = blur >= 0.0;
+    const double* variances = warm_start ? &warm : kStartBlurVariances;
+    const int count = warm_start ? 1 : static_cast<int>(std::size(kStartBlurVariances));
+    for (int v = 0; v < count; ++v) {
+      const double variance = variances[v];
       fit.Blurred(variance, cover, nullptr);
       cv::Matx22d a = cv::Matx22d::zeros();
       cv::Vec2d b(0, 0);
@@ -665,6 +675,7 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
   // is not trusted.
   if (!(outliers < kMaxOutliers) || std::abs(params[9]) < 0.5 * contrast) return false;
   for (int i = 0; i < 4; ++i) corners[i] = {params[2 * i], params[2 * i + 1]};
+  blur = params[kBlur];
   return true;
 }
 
@@ -684,6 +695,14 @@ size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv
 }  // namespace internal
 
 bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
+  float blur = -1.0f;
+  return internal::RefineCornersOnPatternFrom(grey, black, corners, blur);
+}
+
+namespace internal {
+
+bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
+                                float& blur_variance) {
   CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
   const int cells = black.rows;
   const double side = internal::MeanSide(corners);
@@ -719,7 +738,8 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
   grey(box).convertTo(patch, CV_32F);
   std::array<Vec2, 4> local;
   for (int i = 0; i < 4; ++i) local[i] = {corners[i].x - box.x, corners[i].y - box.y};
-  if (!FitPattern(patch, black, local)) return false;
+  double blur = blur_variance;
+  if (!FitPattern(patch, black, local, blur)) return false;
   std::array<cv::Point2f, 4> refined;
   for (int i = 0; i < 4; ++i) {
     const Vec2 p(local[i].x + box.x, local[i].y + box.y);
@@ -727,7 +747,10 @@ bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::arra
     refined[i] = cv::Point2f(static_cast<float>(p.x), static_cast<float>(p.y));
   }
   corners = refined;
+  blur_variance = static_cast<float>(blur);
   return true;
 }
+
+}  // namespace internal
 
 }  // namespace arucotag

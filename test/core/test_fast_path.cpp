@@ -129,16 +129,56 @@ TEST(FastPath, NewMarkerFoundWithinTheFullSearchInterval) {
   EXPECT_LT(found_at, appear + interval) << "found " << found_at - appear << " frames after it appeared";
 }
 
-// A large marker is seen at the coarse level, which covers every frame: found at once.
-TEST(FastPath, NewLargeMarkerFoundAtOnce) {
+// A large marker that appears away from the image edges is beyond the entry band's reach too: it
+// is found by the next full scan, within full_search_interval frames.
+TEST(FastPath, NewLargeMarkerFoundWithinTheFullSearchInterval) {
   const Sequence sequence;
   const sim::Marker large = sim::FacingCamera(44, 0.15, {0.35, 0.05, 1.6}, 0.0, 20.0, 0.0);  // about 95 px
   const Detector detector;
-  for (int k = 0; k < 4; ++k) {
-    const auto tags = Detect(sequence.Frame(k, large, 2), detector);
-    EXPECT_EQ(Find(tags, 44) != nullptr, k >= 2) << "frame " << k;
+  const int interval = detector.config().full_search_interval;
+  const int appear = 2;
+  int found_at = -1;
+  for (int k = 0; k < appear + interval; ++k) {
+    const auto tags = Detect(sequence.Frame(k, large, appear), detector);
+    if (k < appear) {
+      EXPECT_EQ(Find(tags, 44), nullptr) << "frame " << k;
+    }
+    if (found_at < 0 && Find(tags, 44)) found_at = k;
   }
   EXPECT_GE(detector.tracking_stats().tracked_frames, 2u);
+  ASSERT_GE(found_at, appear) << "marker 44 never found";
+  EXPECT_LT(found_at, appear + interval) << "found " << found_at - appear << " frames after it appeared";
+}
+
+// Video mode's budget: a tracked frame reads its markers where they are predicted and searches
+// nothing else while the camera stands still (no region to search, no edge the scene moves in
+// from); the whole frame is searched on the first frame and then once every full_search_interval
+// frames; every frame reports what the full search reports.
+TEST(FastPath, TrackedFramesReadMarkersWithoutASearchAndScanOnABudget) {
+  const Sequence sequence;
+  const sim::Marker none = sim::FacingCamera(0, 0.15, {0.0, 0.0, -5.0});  // behind the camera: never seen
+  DetectorConfig config;
+  config.full_search_interval = 5;
+  const Detector detector(config);
+  DetectorConfig full_config;
+  full_config.fast_path = false;
+  const Detector full(full_config);
+  const int frames = 2 * config.full_search_interval + 2;
+  unsigned long long one_full_search = 0;
+  for (int k = 0; k < frames; ++k) {
+    const cv::Mat grey = sequence.Frame(k, none, 1000);
+    const auto tags = Detect(grey, detector);
+    ExpectSameAsFullSearch(tags, Detect(grey, full), 0.01, "frame " + std::to_string(k));
+    if (k == 0) one_full_search = detector.tracking_stats().searched_pixels;
+  }
+  ASSERT_GT(one_full_search, 0u);
+  const auto stats = detector.tracking_stats();
+  // Frames 0, 5 and 10 (k = 0 and every full_search_interval after it).
+  const unsigned long long scans = 1 + (frames - 1) / config.full_search_interval;
+  EXPECT_EQ(stats.full_searches, scans);
+  EXPECT_EQ(stats.tracked_frames, frames - scans);
+  EXPECT_EQ(stats.read_at_prediction, 3u * (frames - 1)) << "every tracked marker read where predicted";
+  EXPECT_EQ(stats.searched_pixels, scans * one_full_search) << "tracked frames searched pixels";
 }
 
 // Another scene after a tracked one (a cut, or unrelated images through one Detector) is searched
