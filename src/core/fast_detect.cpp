@@ -82,10 +82,10 @@ int Pixels(const std::vector<SearchTask>& tasks) {
 // marker's centre inside it.
 bool Overlaps(const Quad& q, const std::vector<Found>& known) {
   const cv::Point2f centre = Centre(q.corners);
+  const cv::Mat quad(4, 1, CV_32FC2, const_cast<cv::Point2f*>(q.corners.data()));
   for (const Found& f : known) {
-    const std::vector<cv::Point2f> outline(f.corners.begin(), f.corners.end());
+    const cv::Mat outline(4, 1, CV_32FC2, const_cast<cv::Point2f*>(f.corners.data()));
     if (cv::pointPolygonTest(outline, centre, false) >= 0.0) return true;
-    const std::vector<cv::Point2f> quad(q.corners.begin(), q.corners.end());
     if (cv::pointPolygonTest(quad, Centre(f.corners), false) >= 0.0) return true;
   }
   return false;
