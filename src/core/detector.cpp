@@ -11,6 +11,7 @@
 #include "fast_detect.hpp"
 #include "geometry.hpp"
 #include "refine_corner.hpp"
+#include "refine_pattern.hpp"
 
 namespace arucotag {
 

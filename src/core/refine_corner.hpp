@@ -21,10 +21,4 @@ int MarkerCornerHalfWindow(float side, int cells, int configured);
 void RefineMarkerCorners(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells, int configured_half,
                          int max_iterations, double epsilon);
 
-/// RefineCornersOnPattern with the fit's blur: `blur_variance` (px^2) in, the variance to start from
-/// (a tracked marker's fit of the last frame; < 0: the usual start, which tries four), out, the
-/// fitted one when it returns true.
-bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
-                                float& blur_variance);
-
 }  // namespace arucotag::internal

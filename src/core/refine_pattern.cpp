@@ -14,7 +14,6 @@
 #include <arucotag/refine.hpp>
 
 #include "geometry.hpp"
-#include "refine_corner.hpp"
 #include "refine_pattern.hpp"
 
 #include <algorithm>
