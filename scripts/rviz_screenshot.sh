@@ -58,52 +58,64 @@ roscore -p "${PORT}" > "${LOG%.log}_roscore.log" 2>&1 &
 pids+=($!)
 for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
 # rviz needs a few seconds to open under software GL: the player starts paused and plays once
-# rviz's overlay display has subscribed. rviz 1.14 under Xvfb very rarely aborts while starting
-# (a heap error inside rviz): one more try then, reported on stderr.
-start_replay() {
+# rviz's overlay display has subscribed. rviz 1.14 under Xvfb rarely dies on its own (a heap error or
+# a segfault inside rviz, seen while it starts and just after it subscribes): when rviz dies during
+# a replay, the replay runs once more, and that is reported on stderr.
+died() { grep -q 'rviz-[0-9]*\] process has died' "${LOG}"; }
+replay() {  # one replay up to its last frame; 1 when rviz died, 2 on any other failure
   # The loops below read roslaunch's log as it runs: Python must not buffer it until exit.
   PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
     bundles:="${BUNDLES}" rate_control:=true quiet:=true paused:=true > "${LOG}" 2>&1 &
   launch=$!
   pids=("${launch}" "${pids[@]}")
+  local subscribed=false
   for _ in $(seq 120); do
-    if rostopic info /zed/overlay 2>/dev/null | grep -q '/rviz'; then return 0; fi
-    grep -q 'rviz-[0-9]*\] process has died' "${LOG}" && return 1
-    kill -0 "${launch}" 2>/dev/null || return 1
+    if rostopic info /zed/overlay 2>/dev/null | grep -q '/rviz'; then subscribed=true; break; fi
+    died && return 1
+    kill -0 "${launch}" 2>/dev/null || { echo "rviz_screenshot: roslaunch exited early, see ${LOG}" >&2; return 2; }
     sleep 0.5
   done
-  return 1
-}
-if ! start_replay; then
-  echo "rviz_screenshot: rviz did not come up (log kept as ${LOG%.log}_try1.log), trying once more" >&2
-  kill -INT "${launch}" 2>/dev/null || true
-  wait "${launch}" 2>/dev/null || true
-  mv "${LOG}" "${LOG%.log}_try1.log"
-  start_replay || { echo "rviz_screenshot: rviz never subscribed, see ${LOG}" >&2; exit 1; }
-fi
-playing=false
-for _ in $(seq 60); do
-  if rosservice call /player/pause_playback false > /dev/null 2>&1; then playing=true; break; fi
-  sleep 0.5
-done
-[ "${playing}" = true ] || { echo "rviz_screenshot: cannot start the player, see ${LOG}" >&2; exit 1; }
-
-# Playback is over when the player node has gone (it does not respawn).
-for _ in $(seq 600); do
-  grep -q 'player-1\] process has finished' "${LOG}" && break
-  kill -0 "${launch}" 2>/dev/null || { echo "rviz_screenshot: roslaunch exited early, see ${LOG}" >&2; exit 1; }
-  sleep 0.5
-done
-sleep 3  # let rviz draw the last frame
-rviz_up=false
-for _ in $(seq 10); do  # rosnode list can time out on a busy machine: ask again
-  if rosnode list 2>/dev/null | grep -q '^/rviz$'; then rviz_up=true; break; fi
-  sleep 1
-done
-if [ "${rviz_up}" = false ]; then
+  [ "${subscribed}" = true ] || { echo "rviz_screenshot: rviz never subscribed, see ${LOG}" >&2; return 2; }
+  local playing=false
+  for _ in $(seq 60); do
+    if rosservice call /player/pause_playback false > /dev/null 2>&1; then playing=true; break; fi
+    died && return 1
+    sleep 0.5
+  done
+  [ "${playing}" = true ] || { echo "rviz_screenshot: cannot start the player, see ${LOG}" >&2; return 2; }
+  # Playback is over when the player node has gone (it does not respawn).
+  for _ in $(seq 600); do
+    grep -q 'player-1\] process has finished' "${LOG}" && break
+    died && return 1
+    kill -0 "${launch}" 2>/dev/null || { echo "rviz_screenshot: roslaunch exited early, see ${LOG}" >&2; return 2; }
+    sleep 0.5
+  done
+  sleep 3  # let rviz draw the last frame
+  died && return 1
+  for _ in $(seq 10); do  # rosnode list can time out on a busy machine: ask again
+    rosnode list 2>/dev/null | grep -q '^/rviz$' && return 0
+    sleep 1
+  done
   echo "rviz_screenshot: rviz is not running, see ${LOG}; nodes: $(rosnode list 2>&1 | tr "\n" " ")" >&2
-  exit 1
+  return 2
+}
+stop_replay() {
+  kill -INT "${launch}" 2>/dev/null || true
+  for _ in $(seq 50); do kill -0 "${launch}" 2>/dev/null || break; sleep 0.2; done
+  kill -KILL "${launch}" 2>/dev/null || true
+  wait "${launch}" 2>/dev/null || true
+}
+status=0
+replay || status=$?
+if [ ${status} -eq 1 ]; then
+  stop_replay
+  mv "${LOG}" "${LOG%.log}_try1.log"
+  echo "rviz_screenshot: rviz died during the replay (log kept as ${LOG%.log}_try1.log), replaying once more" >&2
+  status=0
+  replay || status=$?
+  [ ${status} -ne 1 ] || echo "rviz_screenshot: rviz died again, see ${LOG}" >&2
 fi
+[ ${status} -eq 0 ] || exit 1
 xwd -root -silent | /usr/bin/convert xwd:- png:"${OUT}"
 if grep -E '\[ERROR\]|rviz.*(crash|Segmentation)|process has died' "${LOG}" > /dev/null; then
   echo "rviz_screenshot: errors in ${LOG}:" >&2

@@ -85,9 +85,15 @@ ran=$(date +%s)
 import pathlib, re, sys, xml.etree.ElementTree as ET
 reports_dir, out, *log_dirs = map(pathlib.Path, sys.argv[1:])
 cases = []  # (name, summary, text)
+skipped = []  # (name, summary, text): a process whose leak check could not run
 for path in sorted(reports_dir.glob("asan.*")):  # ASan and LSan: one file per process that reported
     text = path.read_text(errors="replace")
-    if text.strip():
+    if "Tracer caught signal" in text and "LeakSanitizer has encountered a fatal error" in text \
+            and "ERROR: " not in text and "runtime error:" not in text:
+        # LSan's stop-the-world tracer crashed at exit (an intermittent fault of the tool, known upstream
+        # as google/sanitizers#1353): the process's leak check did not run. Not a finding; listed as skipped.
+        skipped.append((path.name, "leak check did not run: LeakSanitizer's tracer crashed", text))
+    elif text.strip():
         summary = next((l for l in text.splitlines() if l.startswith("SUMMARY")), text.strip().splitlines()[0])
         cases.append((path.name, summary, text))
 # UBSan: "<file>:<line>:<col>: runtime error: ..." on stderr: the test output and the ROS logs.
@@ -100,12 +106,17 @@ for path in logs:
         if match and match.group(0) not in seen:
             seen.add(match.group(0))
             cases.append((f"ubsan in {path.name}", match.group(0), "\n".join(lines[i:i + 30])))
-suite = ET.Element("testsuite", name="sanitizers", tests=str(len(cases)), failures=str(len(cases)))
-for name, summary, text in cases:
-    case = ET.SubElement(suite, "testcase", classname="sanitizers", name=name)
-    ET.SubElement(case, "failure", message=summary).text = text
-    print(f"--- sanitizer report: {name}\n{text}", file=sys.stderr)
-if cases:
+def xml_text(text):
+    return re.sub(r"[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]", "?", text)
+suite = ET.Element("testsuite", name="sanitizers", tests=str(len(cases) + len(skipped)), failures=str(len(cases)),
+                   skipped=str(len(skipped)))
+for kind, found in (("failure", cases), ("skipped", skipped)):
+    for name, summary, text in found:
+        case = ET.SubElement(suite, "testcase", classname="sanitizers", name=name)
+        # Only what XML 1.0 can hold (log lines carry terminal colour codes).
+        ET.SubElement(case, kind, message=xml_text(summary)).text = xml_text(text)
+        print(f"--- sanitizer {'report' if kind == 'failure' else 'tool fault'}: {name}\n{text}", file=sys.stderr)
+if cases or skipped:
     ET.ElementTree(suite).write(out)
 PYTHON
 

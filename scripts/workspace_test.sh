@@ -224,8 +224,13 @@ ELAPSED=$((SECONDS - START))
 # JUnit XML in catkin's form (one suite, one case per check, the reason in <failure>).
 /usr/bin/python3 - "${RESULTS}" "${JUNIT}" "${ELAPSED}" <<'EOF'
 import pathlib
+import re
 import sys
 import xml.etree.ElementTree as ET
+
+def xml_text(text):
+    """TEXT without what XML 1.0 cannot hold (roslaunch's colour codes, ...), which would make the file unreadable."""
+    return re.sub(r"[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]", "?", text)
 
 results, junit, elapsed = pathlib.Path(sys.argv[1]), sys.argv[2], sys.argv[3]
 cases = sorted(p for p in results.iterdir() if p.is_dir())
@@ -235,7 +240,7 @@ for case in cases:
     name = case.name.split("_", 1)[1]
     element = ET.SubElement(suite, "testcase", classname="arucotag.workspace_test", name=name,
                             time=(case / "time").read_text().strip())
-    reason = (case / "failure").read_text()
+    reason = xml_text((case / "failure").read_text(errors="replace"))
     if reason:
         failures += 1
         ET.SubElement(element, "failure", type="WorkspaceCheck", message=reason.splitlines()[0]).text = reason
