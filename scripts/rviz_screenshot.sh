@@ -76,6 +76,18 @@ replay() {  # one replay up to its last frame; 1 when rviz died, 2 on any other 
     sleep 0.5
   done
   [ "${subscribed}" = true ] || { echo "rviz_screenshot: rviz never subscribed, see ${LOG}" >&2; return 2; }
+  # Registered is not connected: the detector's manager connects to rviz on its own time (slowly in
+  # the sanitizer build, whose CI run drew an empty overlay panel), and frames sent before are lost.
+  local connected=false
+  for _ in $(seq 60); do
+    if rosnode info /zed/aruco_detector_manager 2>/dev/null | grep -A1 'topic: /zed/overlay$' | grep -q 'to: /rviz'; then
+      connected=true
+      break
+    fi
+    died && return 1
+    sleep 0.5
+  done
+  [ "${connected}" = true ] || echo "rviz_screenshot: the detector never connected to rviz on /zed/overlay" >&2
   local playing=false
   for _ in $(seq 60); do
     if rosservice call /player/pause_playback false > /dev/null 2>&1; then playing=true; break; fi
