@@ -312,7 +312,6 @@ TEST(StampPatterns, CloudsArriving100MsLate) {
   ASSERT_TRUE(WaitUntil([&] { return late.Count() >= 1; }, 10.0)) << "the first frame was not answered";
   const ros::WallDuration cloud_delay(std::max(0.1, 3.0 * (late.All().front().second - probe_sent).toSec()));
   std::vector<std::pair<ros::Time, ros::WallTime>> sent;  // stamp, when its cloud went out
-  std::deque<ros::Time> clouds_due;
   for (int i = 0; i < 20; ++i) {
     const ros::Time stamp = start + ros::Duration(i / 10.0);
     late.image.publish(PhotoImage(TwoTags(), stamp));
