@@ -10,6 +10,16 @@ import sys
 import xml.etree.ElementTree as ET
 
 
+def reason(case, lines=8):
+    """The first LINES lines of a failed CASE's message, indented: CI's log then says why, not only what."""
+    element = case.find("failure")
+    if element is None:
+        element = case.find("error")
+    text = (element.text or element.get("message") or "").strip().splitlines()
+    shown = text[:lines] + ([f"... ({len(text) - lines} more lines)"] if len(text) > lines else [])
+    return "\n".join("    " + line for line in shown)
+
+
 def main(roots):
     passed = failed = skipped = 0
     files = sorted(f for root in roots for f in pathlib.Path(root).rglob("*.xml"))
@@ -29,6 +39,7 @@ def main(roots):
             if case.find("failure") is not None or case.find("error") is not None:
                 failed += 1
                 print(f"FAILED: {path.name}: {case.get('classname')}.{case.get('name')}", file=sys.stderr)
+                print(reason(case), file=sys.stderr)
             elif case.find("skipped") is not None:
                 skipped += 1
             else:

@@ -196,8 +196,13 @@ step() {  # step NAME LOG SETUP COMMAND: runs COMMAND (bash -c) in the workspace
     record "${RESULTS}" "${name}" $((SECONDS - t0)) ""
     return 0
   fi
-  record "${RESULTS}" "${name}" $((SECONDS - t0)) "$(printf '%s failed, errors and last lines of %s:\n%s\n...\n%s' \
-    "$4" "${log}" "$(grep -m 8 -E -A 3 'Error|error:|FAILURE|FAILED' "${log}")" "$(tail -n 15 "${log}")")"
+  # A test run names its failed cases and why first (count_results.py on the workspace's results).
+  local failed_cases=""
+  [ ! -d "${WS}/build/test_results" ] || [ "${name}" != run_tests ] ||
+    failed_cases="$(/usr/bin/python3 "${SRC}/scripts/count_results.py" "${WS}/build/test_results" 2>&1 >/dev/null)"
+  record "${RESULTS}" "${name}" $((SECONDS - t0)) "$(printf '%s failed%s\n%s\nerrors and last lines of %s:\n%s\n...\n%s' \
+    "$4" "${failed_cases:+:}" "${failed_cases}" "${log}" "$(grep -m 8 -E -A 3 'Error|error:|FAILURE|FAILED' "${log}")" \
+    "$(tail -n 15 "${log}")")"
   return 1
 }
 
