@@ -26,3 +26,9 @@ target_compile_definitions(test_core PRIVATE
   ARUCOTAG_TEST_DATA="${ARUCOTAG_TEST_DATA}"
   ARUCOTAG_CORE_LIBRARY="$<TARGET_FILE:arucotag_core>"
   ARUCOTAG_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+
+# The scripts that write and count CI's JUnit results (scripts/junit.py, scripts/count_results.py):
+# a Python unittest, run through rosunit for its JUnit output. No build, no ROS master.
+catkin_run_tests_target("rosunit" "test_junit" "rosunit-test_junit.xml"
+  COMMAND "/usr/bin/python3 ${CMAKE_CURRENT_SOURCE_DIR}/test/scripts/test_junit.py --gtest_output=xml:${CATKIN_TEST_RESULTS_DIR}/${PROJECT_NAME}/rosunit-test_junit.xml"
+  WORKING_DIRECTORY "${CMAKE_CURRENT_SOURCE_DIR}")

@@ -80,10 +80,12 @@ make run_tests -j1 2>&1 | tee "${reports}/run_tests.out"
 ran=$(date +%s)
 
 # One failed JUnit case per report, so scripts/count_results.py counts them with the tests.
-/usr/bin/python3 - "${reports}" "${ARUCOTAG_BUILD}/test_results/sanitizers.xml" "${ROS_LOG_DIR}" \
-  "${ARUCOTAG_BUILD}/replay_test" <<'PYTHON'
-import pathlib, re, sys, xml.etree.ElementTree as ET
-reports_dir, out, *log_dirs = map(pathlib.Path, sys.argv[1:])
+/usr/bin/python3 - "${ARUCOTAG_SRC}/scripts" "${reports}" "${ARUCOTAG_BUILD}/test_results/sanitizers.xml" \
+  "${ROS_LOG_DIR}" "${ARUCOTAG_BUILD}/replay_test" <<'PYTHON'
+import pathlib, re, sys
+sys.path.insert(0, sys.argv[1])
+import junit  # scripts/junit.py
+reports_dir, out, *log_dirs = map(pathlib.Path, sys.argv[2:])
 cases = []  # (name, summary, text)
 skipped = []  # (name, summary, text): a process whose leak check could not run
 for path in sorted(reports_dir.glob("asan.*")):  # ASan and LSan: one file per process that reported
@@ -106,18 +108,12 @@ for path in logs:
         if match and match.group(0) not in seen:
             seen.add(match.group(0))
             cases.append((f"ubsan in {path.name}", match.group(0), "\n".join(lines[i:i + 30])))
-def xml_text(text):
-    return re.sub(r"[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]", "?", text)
-suite = ET.Element("testsuite", name="sanitizers", tests=str(len(cases) + len(skipped)), failures=str(len(cases)),
-                   skipped=str(len(skipped)))
 for kind, found in (("failure", cases), ("skipped", skipped)):
     for name, summary, text in found:
-        case = ET.SubElement(suite, "testcase", classname="sanitizers", name=name)
-        # Only what XML 1.0 can hold (log lines carry terminal colour codes).
-        ET.SubElement(case, kind, message=xml_text(summary)).text = xml_text(text)
         print(f"--- sanitizer {'report' if kind == 'failure' else 'tool fault'}: {name}\n{text}", file=sys.stderr)
 if cases or skipped:
-    ET.ElementTree(suite).write(out)
+    junit.write_suite(out, "sanitizers", [(name, kind, summary, text, None) for kind, found in
+                                          (("failure", cases), ("skipped", skipped)) for name, summary, text in found])
 PYTHON
 
 catkin_test_results --verbose "${ARUCOTAG_BUILD}/test_results" > test_summary.txt 2>&1 || true

@@ -228,32 +228,23 @@ if step catkin_make catkin_make.log "" "${README_BUILD} -DCATKIN_ENABLE_TESTING=
 fi
 ELAPSED=$((SECONDS - START))
 
-# JUnit XML in catkin's form (one suite, one case per check, the reason in <failure>).
-/usr/bin/python3 - "${RESULTS}" "${JUNIT}" "${ELAPSED}" <<'EOF'
+# JUnit XML (scripts/junit.py): one suite, one case per check, the reason in <failure>.
+/usr/bin/python3 - "${SRC}/scripts" "${RESULTS}" "${JUNIT}" "${ELAPSED}" <<'EOF'
 import pathlib
-import re
 import sys
-import xml.etree.ElementTree as ET
 
-def xml_text(text):
-    """TEXT without what XML 1.0 cannot hold (roslaunch's colour codes, ...), which would make the file unreadable."""
-    return re.sub(r"[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]", "?", text)
+sys.path.insert(0, sys.argv[1])
+import junit  # noqa: E402 (scripts/junit.py)
 
-results, junit, elapsed = pathlib.Path(sys.argv[1]), sys.argv[2], sys.argv[3]
-cases = sorted(p for p in results.iterdir() if p.is_dir())
-failures = 0
-suite = ET.Element("testsuite", name="arucotag.workspace_test", tests=str(len(cases)), errors="0", time=elapsed)
-for case in cases:
-    name = case.name.split("_", 1)[1]
-    element = ET.SubElement(suite, "testcase", classname="arucotag.workspace_test", name=name,
-                            time=(case / "time").read_text().strip())
-    reason = xml_text((case / "failure").read_text(errors="replace"))
-    if reason:
-        failures += 1
-        ET.SubElement(element, "failure", type="WorkspaceCheck", message=reason.splitlines()[0]).text = reason
-suite.set("failures", str(failures))
-ET.ElementTree(suite).write(junit, encoding="utf-8", xml_declaration=True)
-print("workspace_test: %d checks, %d failed, %s s; %s" % (len(cases), failures, elapsed, junit))
+results, out, elapsed = pathlib.Path(sys.argv[2]), sys.argv[3], sys.argv[4]
+cases = []
+for case in sorted(p for p in results.iterdir() if p.is_dir()):
+    reason = (case / "failure").read_text(errors="replace")
+    cases.append((case.name.split("_", 1)[1], "failure" if reason else None, None, reason,
+                  (case / "time").read_text().strip()))
+junit.write_suite(out, "arucotag.workspace_test", cases, time=elapsed)
+failures = sum(outcome == "failure" for _, outcome, _, _, _ in cases)
+print("workspace_test: %d checks, %d failed, %s s; %s" % (len(cases), failures, elapsed, out))
 sys.exit(1 if failures or not cases else 0)
 EOF
 status=$?
