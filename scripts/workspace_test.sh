@@ -3,7 +3,8 @@
 # a copy of this checkout without build folders). Runs the README's commands ("In a catkin workspace")
 # and checks that each one works:
 #   - catkin_make (testing on), then from the devel space, each in a fresh shell environment:
-#     rosrun arucotag detector_node, roslaunch arucotag detector.launch, a nodelet manager with
+#     rosrun arucotag detector_node, roslaunch arucotag detector.launch (its manager must have
+#     MALLOC_ARENA_MAX=1 in its environment), a nodelet manager with
 #     `rosrun nodelet nodelet load arucotag/DetectorNodelet`; each gets a real photo
 #     (test/data/ubiquity_fiducials/tag_01_d7_14cm.png, DICT_5X5_1000, 0.145 m) and its camera_info
 #     from scripts/photo_tags_check.py, which checks that `tags` reports id 1 about 0.73 m away;
@@ -122,11 +123,21 @@ if [ "${1:-}" = --space ]; then
   roscore_pid=$!
   for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
 
-  check() {  # check NAME TAGS_TOPIC IMAGE_TOPIC INFO_TOPIC: processes in pids are up; publish, check, stop
+  # check NAME TAGS_TOPIC IMAGE_TOPIC INFO_TOPIC [MANAGER]: processes in pids are up; publish, check, stop.
+  # MANAGER: a nodelet manager the launch file started, which must run with one malloc arena.
+  check() {
     local name="$1" t0=${SECONDS} out
     out="$(python3 "${SRC}/scripts/photo_tags_check.py" "${CHECK_ARGS[@]}" --tags-topic "$2" --image-topic "$3" \
       --camera-info-topic "$4" 2>&1)"
     local rc=$?
+    if [ ${rc} -eq 0 ] && [ -n "${5:-}" ]; then
+      local pid
+      pid="$(rosnode info "$5" 2>/dev/null | awk '/^Pid:/ {print $2}')"
+      if ! tr '\0' '\n' < "/proc/${pid:-0}/environ" 2>/dev/null | grep -qx 'MALLOC_ARENA_MAX=1'; then
+        out+=$'\n'"$5 (pid '${pid}') does not run with MALLOC_ARENA_MAX=1 (the launch file's malloc_arena_max)"
+        rc=1
+      fi
+    fi
     echo "${out}" > "${LOGS}/${name}_check.log"
     stop_all
     if [ ${rc} -eq 0 ]; then
@@ -146,7 +157,7 @@ if [ "${1:-}" = --space ]; then
     -e 's/^tag_size: [0-9.]*/tag_size: 0.145/' my_tags.yaml
   bash -c "${README_LAUNCH}" > "${LOGS}/roslaunch_detector.log" 2>&1 &
   pids+=($!)
-  check roslaunch_detector /front/tags /front/image_raw /front/camera_info
+  check roslaunch_detector /front/tags /front/image_raw /front/camera_info /front/aruco_detector_manager
 
   bash -c "${README_MANAGER}" > "${LOGS}/nodelet_load.log" 2>&1 &
   pids+=($!)
