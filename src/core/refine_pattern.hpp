@@ -13,6 +13,10 @@ namespace arucotag::internal {
 /// cells of 4 px or more, and at most about 6000 for markers over about 95 px (a sparser lattice).
 size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv::Point2f, 4>& corners);
 
+/// How many times the fit has evaluated its cost (and normal equations) on this thread so far: what
+/// fits cost, counted rather than timed.
+size_t PatternFitEvaluations();
+
 /// RefineCornersOnPattern with the fit's blur: `blur_variance` (px^2) in, the variance to start from
 /// (a tracked marker's fit of the last frame; < 0: the usual start, which tries four), out, the
 /// fitted one when it returns true.
