@@ -108,12 +108,12 @@ for path in logs:
         if match and match.group(0) not in seen:
             seen.add(match.group(0))
             cases.append((f"ubsan in {path.name}", match.group(0), "\n".join(lines[i:i + 30])))
-for kind, found in (("failure", cases), ("skipped", skipped)):
-    for name, summary, text in found:
-        print(f"--- sanitizer {'report' if kind == 'failure' else 'tool fault'}: {name}\n{text}", file=sys.stderr)
-if cases or skipped:
-    junit.write_suite(out, "sanitizers", [(name, kind, summary, text, None) for kind, found in
-                                          (("failure", cases), ("skipped", skipped)) for name, summary, text in found])
+entries = [(name, "failure", summary, text, None) for name, summary, text in cases] + \
+          [(name, "skipped", summary, text, None) for name, summary, text in skipped]
+for name, kind, _, text, _ in entries:
+    print(f"--- sanitizer {'report' if kind == 'failure' else 'tool fault'}: {name}\n{text}", file=sys.stderr)
+if entries:
+    junit.write_suite(out, "sanitizers", entries)
 PYTHON
 
 catkin_test_results --verbose "${ARUCOTAG_BUILD}/test_results" > test_summary.txt 2>&1 || true

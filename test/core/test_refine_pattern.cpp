@@ -267,7 +267,8 @@ TEST(PatternFit, LargeMarkersKeepTheFitsAccuracy) {
 // (72 cost evaluations for the frame, about 8 ms in release, over 1 s under the fuzz build's
 // sanitizers). From the fourth step on, the limit itself ends such fits.
 TEST(PatternFit, GivesUpEarlyOnADamagedMarker) {
-  const cv::Mat grey = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/fuzz/damaged_marker_64x48.png", cv::IMREAD_GRAYSCALE);
+  const cv::Mat grey =
+      cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/fuzz/damaged_marker_64x48.png", cv::IMREAD_GRAYSCALE);
   ASSERT_EQ(grey.size(), cv::Size(64, 48));
   DetectorConfig config;
   config.dictionary = "DICT_4X4_50";

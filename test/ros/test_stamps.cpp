@@ -98,7 +98,8 @@ struct Instance {
         })) {}
 
   // The detector takes all three inputs and both tags subscribers are connected to it: an answer
-  // published before the connection is made would be lost (frame 0 of CameraInfoStampedOneSecondBefore went unanswered once in a workspace run).
+  // published before the connection is made would be lost (frame 0 of CameraInfoStampedOneSecondBefore
+  // went unanswered once in a workspace run).
   bool Ready() const {
     return WaitUntil([&] { return image.getNumSubscribers() > 0 && info.getNumSubscribers() > 0 &&
                                   cloud.getNumSubscribers() > 0 && tags.Publishers() > 0 &&
