@@ -10,6 +10,7 @@
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 
+#include "plane_fit.hpp"
 #include "scene.hpp"
 
 namespace arucotag {
@@ -130,6 +131,53 @@ TEST(PclCloud, BackgroundAtTheTagsEdgeIsRejected) {
   ArucoTag dragged = detected;
   ASSERT_TRUE(EstimatePoseFromPointCloud(cloud, cloud.size(), dragged, legacy));
   EXPECT_GT(cv::norm(dragged.cloud.centre - marker.tvec), 0.05);
+}
+
+// A 10x10 grid over the marker, its left half on the plane z = 2 m and its right half on a parallel
+// plane `gap` behind: the consensus finds one of the two, and which one depends on the samples it
+// draws.
+std::vector<internal::Sample> TwoHalves(double gap) {
+  std::vector<internal::Sample> samples;
+  for (int i = 0; i < 10; ++i) {
+    for (int j = 0; j < 10; ++j) {
+      const double a = (i + 0.5) / 10.0 - 0.5, b = (j + 0.5) / 10.0 - 0.5;
+      samples.push_back({a, b, cv::Vec3d(0.15 * a, 0.15 * b, a < 0.0 ? 2.0 : 2.0 + gap)});
+    }
+  }
+  return samples;
+}
+
+TEST(PlaneConsensus, SameSamplesSameAnswerWhateverCameBefore) {
+  // The thread's PCL model and estimators are made once and reused: each fit starts the sampler
+  // from the same state, or a tag's answer would depend on the tags fitted before it.
+  const std::vector<internal::Sample> samples = TwoHalves(0.3);
+  for (const PlaneFit method : {PlaneFit::kRansac, PlaneFit::kMsac, PlaneFit::kLmeds, PlaneFit::kMlesac}) {
+    CloudPoseOptions options;
+    options.plane_fit = method;
+    options.min_plane_points = 10;
+    internal::MarkerPlane first;
+    ASSERT_TRUE(internal::FitMarkerPlane(samples, options, first)) << static_cast<int>(method);
+    for (int run = 0; run < 6; ++run) {
+      internal::MarkerPlane again;
+      ASSERT_TRUE(internal::FitMarkerPlane(samples, options, again));
+      EXPECT_EQ(again.use, first.use) << "method " << static_cast<int>(method) << ", run " << run;
+      EXPECT_EQ(again.c, first.c) << "method " << static_cast<int>(method) << ", run " << run;
+    }
+  }
+}
+
+TEST(PlaneConsensus, NoModelIsAFailureNotThePreviousTagsPlane) {
+  // PCL's estimators keep the last model they found and return it when no sample of the next
+  // points gives one; ours forget it.
+  CloudPoseOptions options;
+  options.min_plane_points = 10;
+  internal::MarkerPlane plane;
+  ASSERT_TRUE(internal::FitMarkerPlane(TwoHalves(0.0), options, plane));
+  // Every point on one line across the previous plane: no three of them span a plane, and all of
+  // them lie in the previous one.
+  std::vector<internal::Sample> line = TwoHalves(0.0);
+  for (auto& s : line) s.xyz = cv::Vec3d(0.15 * s.a + 0.015 * s.b, 0.0, 2.0);
+  EXPECT_FALSE(internal::FitMarkerPlane(line, options, plane));
 }
 
 }  // namespace
