@@ -462,6 +462,16 @@ constexpr double kMinCornerSigma = 0.1;
 constexpr double kDecisiveEvidence = 9.0;
 // ...and the two normals it compares differ from the cloud's by at least this much.
 constexpr double kMinNormalMargin = 2.0 * CV_PI / 180.0;
+// A clear pick, whose rival reprojects over five times worse (`ambiguity`, the ratio of the two
+// RMS errors, below this), is overturned only by a plane whose normal is known to within twice its
+// systematic error (kNormalSystematic, below). The corners' chi-square understates such a pick when
+// its fit is far below the corner-noise floor, and a noisy plane's correlated patches can tilt it
+// onto the other solution: bench_pose seed 17, frame 303, a 17 px marker at 7.9 m, 0.001 against
+// 0.078 px (ambiguity 0.008), a plane 9 degrees from the rival with 25 degrees of noise, turned
+// 105 degrees. Over 4000 frames (seeds 7, 11, 13, 17, bench_pose --csv) every pick the cloud
+// rightly overturned had an ambiguity of 0.25 or more.
+constexpr double kClearPickAmbiguity = 0.2;
+constexpr double kClearPickNormalSystematics = 2.0;
 // A real cloud's normal is off by more than its noise says: blocks averaged across the marker's
 // edge, a cloud a frame older than the image on a turning rover, calibration. This much (rad) is
 // added in quadrature. Without it the sample recording's fused poses flipped 13 times where PnP
@@ -681,6 +691,8 @@ int FusedChoice(const ArucoTag& tag) {
   // noisy or stale cloud does not flip a good PnP pose, and a confident plane fixes an ambiguous one.
   const FusedEvidence evidence = WeighFusedEvidence(tag);
   if (!evidence.usable) return 0;
+  const bool clear_pick = tag.pnp.rms[0] < kClearPickAmbiguity * tag.pnp.rms[1];
+  if (clear_pick && evidence.normal_sigma > kClearPickNormalSystematics * kNormalSystematic) return 0;
   const double plane_limit = std::max(kMaxPlaneDisagreement, kPlaneDisagreementSigmas * evidence.normal_sigma);
   if (evidence.angle[0] - evidence.angle[1] < kMinNormalMargin || evidence.angle[1] > plane_limit) return 0;
   return evidence.cloud - evidence.corners > kDecisiveEvidence ? 1 : 0;

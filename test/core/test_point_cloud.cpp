@@ -200,6 +200,21 @@ TEST(PointCloud, FusedChoiceWeighsCornersAgainstTheCloud) {
   steep.tag.cloud.normal = cv::normalize(std::cos(far_off) * steep.normal[1] + std::sin(far_off) * away);
   EXPECT_EQ(FusedChoice(steep.tag), 0);
 
+  // Clear corners (0.001 against 0.078 px: ambiguity 0.008) and a stereo plane 9 degrees from the
+  // other solution with 25 degrees of noise: the cloud's evidence outweighs the corners' by 11, but
+  // the pick is clear and the plane noisy, and the pick stays (bench_pose seed 17, frame 303: the
+  // plane was a correlated stereo patch and the override turned the pose 105 degrees). A precise
+  // plane still overturns it (BundlePose.CloudResolvesTheFlipOfASingleFace).
+  Choice clear(0.001, 0.078, 50.0);
+  const double near_off = 9.0 * CV_PI / 180.0;
+  clear.tag.cloud.normal = cv::normalize(std::cos(near_off) * clear.normal[1] + std::sin(near_off) * away);
+  clear.tag.cloud.normal_sigma = 25.0 * CV_PI / 180.0;
+  const FusedEvidence clear_evidence = WeighFusedEvidence(clear.tag);
+  EXPECT_GT(clear_evidence.cloud - clear_evidence.corners, 9.0);
+  EXPECT_EQ(FusedChoice(clear.tag), 0);
+  clear.tag.cloud.normal_sigma = 8.0 * CV_PI / 180.0;
+  EXPECT_EQ(FusedChoice(clear.tag), 1);
+
   // No plane, or one solution: the corners' pick.
   Choice flat(0.030, 0.032);
   flat.tag.cloud.normal = flat.normal[1];
