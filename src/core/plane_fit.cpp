@@ -4,7 +4,6 @@
 #include <cmath>
 #include <memory>
 
-#include <boost/random/mersenne_twister.hpp>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 #include <pcl/sample_consensus/lmeds.h>
@@ -61,22 +60,15 @@ bool FitTrimmed(const std::vector<Sample>& samples, const CloudPoseOptions& opti
   return true;
 }
 
-// PCL's plane model, restarted for each tag's points: the same sampler state every time, so a tag
-// always gives one answer whatever this thread fitted before. The state is copied, not seeded
-// again: seeding a Mersenne twister and its first draw (624 words each) were a fifth of the time
-// of a consensus on 100 points.
+// PCL's plane model, restarted for each tag's points: its sampler seeded as PCL seeds it when it
+// is made, so a tag always gives one answer whatever this thread fitted before.
 class PlaneModel : public pcl::SampleConsensusModelPlane<pcl::PointXYZ> {
  public:
   using SampleConsensusModelPlane::SampleConsensusModelPlane;
   void Restart(const PointCloudConstPtr& cloud) {
-    static const boost::mt19937 kStart = [] {
-      boost::mt19937 engine(12345u);  // PCL's own seed
-      engine.discard(1);
-      return engine;
-    }();
     indices_->clear();  // or setInputCloud keeps the previous cloud's indices
     setInputCloud(cloud);
-    rng_alg_ = kStart;
+    rng_alg_.seed(12345u);  // PCL's own seed
   }
 };
 
@@ -94,10 +86,12 @@ class FreshEstimator : public Estimator {
 
 // One thread's consensus tools, made on its first tag. Making the model and an estimator for every
 // tag seeded four Mersenne twisters and allocated a dozen times: a fit on 100 points (a 0.15 m tag
-// at 12 m) took 17 us with them, 8 us without (the legacy fit: 4 us).
+// at 12 m) took 17 us with them, 10 us without (the legacy fit: 4 us).
 struct Consensus {
   pcl::PointCloud<pcl::PointXYZ>::Ptr cloud{new pcl::PointCloud<pcl::PointXYZ>};
-  std::shared_ptr<PlaneModel> model{new PlaneModel(cloud)};
+  PlaneModel* model = new PlaneModel(cloud);
+  // Owns *model, as PCL's own shared pointer: boost's before PCL 1.11 (ROS Noetic's 1.10), std's after.
+  pcl::SampleConsensusModelPlane<pcl::PointXYZ>::Ptr model_owner{model};
   std::unique_ptr<pcl::SampleConsensus<pcl::PointXYZ>> estimators[4];
 
   pcl::SampleConsensus<pcl::PointXYZ>& Estimator(PlaneFit method) {
@@ -106,16 +100,17 @@ struct Consensus {
     if (!estimator) {
       switch (method) {
         case PlaneFit::kMsac:
-          estimator = std::make_unique<FreshEstimator<pcl::MEstimatorSampleConsensus<pcl::PointXYZ>>>(model);
+          estimator = std::make_unique<FreshEstimator<pcl::MEstimatorSampleConsensus<pcl::PointXYZ>>>(model_owner);
           break;
         case PlaneFit::kLmeds:
-          estimator = std::make_unique<FreshEstimator<pcl::LeastMedianSquares<pcl::PointXYZ>>>(model);
+          estimator = std::make_unique<FreshEstimator<pcl::LeastMedianSquares<pcl::PointXYZ>>>(model_owner);
           break;
         case PlaneFit::kMlesac:
-          estimator = std::make_unique<FreshEstimator<pcl::MaximumLikelihoodSampleConsensus<pcl::PointXYZ>>>(model);
+          estimator =
+              std::make_unique<FreshEstimator<pcl::MaximumLikelihoodSampleConsensus<pcl::PointXYZ>>>(model_owner);
           break;
         default:
-          estimator = std::make_unique<FreshEstimator<pcl::RandomSampleConsensus<pcl::PointXYZ>>>(model);
+          estimator = std::make_unique<FreshEstimator<pcl::RandomSampleConsensus<pcl::PointXYZ>>>(model_owner);
       }
       estimator->setMaxIterations(kMaxIterations);
     }
