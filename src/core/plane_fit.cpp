@@ -122,6 +122,7 @@ struct Consensus {
 // depth) on an even subset of the samples, then refined by least squares: the consensus plane
 // comes from three points and is only good enough to tell inliers from outliers.
 bool FitConsensus(const std::vector<Sample>& samples, const CloudPoseOptions& options, MarkerPlane& plane) {
+  if (samples.size() < 3) return false;  // no plane, and no subset to stride over
   const size_t step = (samples.size() + kConsensusPoints - 1) / kConsensusPoints;
   const size_t count = (samples.size() + step - 1) / step;
   // One pass over the subset: its depths, and its mean and spread about the first point (which

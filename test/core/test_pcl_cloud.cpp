@@ -180,5 +180,20 @@ TEST(PlaneConsensus, NoModelIsAFailureNotThePreviousTagsPlane) {
   EXPECT_FALSE(internal::FitMarkerPlane(line, options, plane));
 }
 
+TEST(PlaneConsensus, FewerThanThreeSamplesAreNoPlaneWhateverTheMinimum) {
+  // A minimum of zero points (the fuzzer sets it) must not let an empty or two-point set through.
+  const std::vector<internal::Sample> all = TwoHalves(0.0);
+  for (const PlaneFit method : {PlaneFit::kRansac, PlaneFit::kMsac, PlaneFit::kLmeds, PlaneFit::kMlesac}) {
+    CloudPoseOptions options;
+    options.plane_fit = method;
+    options.min_plane_points = 0;
+    for (size_t n = 0; n < 3; ++n) {
+      internal::MarkerPlane plane;
+      EXPECT_FALSE(internal::FitMarkerPlane({all.begin(), all.begin() + n}, options, plane))
+          << "method " << static_cast<int>(method) << ", " << n << " samples";
+    }
+  }
+}
+
 }  // namespace
 }  // namespace arucotag
