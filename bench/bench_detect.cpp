@@ -16,7 +16,11 @@
 //
 //   bench_detect --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100]
 //                [--reps 5] [--threads N] [--all-cores-reps N] [--sets 'a|b'] [--methods a,b]
+//                [--misses FILE]
 //
+// --misses FILE writes one CSV row per expected marker with exact corners (rendered sets) and per
+// detector, from the scored pass: its shortest and longest side (px), and whether it was found, so
+// that recall can be broken down by size and obliqueness.
 // --threads sets OpenCV's threads (bench/run.sh: 1); AprilTag always runs on 1 thread.
 // --all-cores-reps N times the OpenCV-threaded detectors N more passes at all hardware threads.
 // Methods rotate frame by frame so that load from other processes hits all of them alike.
@@ -171,8 +175,17 @@ void CornerErrors(const Frame& frame, const Detections& d, std::vector<double>& 
   }
 }
 
+// One expected marker as one detector saw it (--misses).
+struct MarkerOutcome {
+  std::string method;
+  int frame = 0, id = -1;
+  double min_side = 0.0, max_side = 0.0;  // px
+  bool found = false;
+};
+
 struct SetResult {
   std::string name, size, dictionary;
+  std::vector<MarkerOutcome> outcomes;  // --misses
   int frames = 0;
   bool sequence = false, exact_corners = false;
   std::vector<std::string> order;       // method keys as run
@@ -362,6 +375,17 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
         s.expected += sc.expected;
         s.false_positives += sc.false_positives;
         CornerErrors(frame, d, s.corner_errors);
+        for (const Truth& t : frame.truth) {
+          if (!t.has_corners) continue;
+          MarkerOutcome o{m.key, static_cast<int>(k), t.id, 1e9, 0.0,
+                          ScoreFrame(Frame{frame.name, {}, {}, {t}, {}}, d.ids, d.corners).found > 0};
+          for (int c = 0; c < 4; ++c) {
+            const double side = cv::norm(t.corners[c] - t.corners[(c + 1) % 4]);
+            o.min_side = std::min(o.min_side, side);
+            o.max_side = std::max(o.max_side, side);
+          }
+          r.outcomes.push_back(o);
+        }
         if (m.key == "ours") {
           if (!set.sequence) CompareToFull(frame, d, *l.full, r);
           TimeRefinement(frame, d, l.config, *l.full->dictionary(), r);
@@ -496,6 +520,17 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
   out << "  ]\n}\n";
 }
 
+void WriteMisses(const std::vector<SetResult>& results, const std::string& path) {
+  std::ofstream out(path);
+  out << "set,method,frame,id,min_side_px,max_side_px,found\n";
+  for (const auto& r : results) {
+    for (const auto& o : r.outcomes) {
+      out << '"' << r.name << "\"," << o.method << ',' << o.frame << ',' << o.id << ',' << o.min_side << ','
+          << o.max_side << ',' << (o.found ? 1 : 0) << '\n';
+    }
+  }
+}
+
 int Main(int argc, char** argv) {
   const Options options = ParseOptions(argc, argv, "results.json");
   const std::string load_before = LoadAverage();
@@ -520,6 +555,10 @@ int Main(int argc, char** argv) {
   }
   WriteJson(results, options.json, options.reps, threads, options.all_cores_reps, load_before, DetectorConfig());
   std::fprintf(stderr, "bench_detect: wrote %s\n", options.json.c_str());
+  if (!options.misses.empty()) {
+    WriteMisses(results, options.misses);
+    std::fprintf(stderr, "bench_detect: wrote %s\n", options.misses.c_str());
+  }
   return 0;
 }
 

@@ -545,6 +545,7 @@ Options ParseOptions(int argc, char** argv, const std::string& default_json) {
     else if (arg == "--all-cores-reps") options.all_cores_reps = std::stoi(next());
     else if (arg == "--sets") options.sets = Split(next(), '|');
     else if (arg == "--methods") options.methods = Split(next(), ',');
+    else if (arg == "--misses") options.misses = next();
     else throw Error("unknown option " + arg);
   }
   return options;

@@ -56,6 +56,7 @@ struct Options {
   int all_cores_reps = 0;  ///< --all-cores-reps: extra passes at all cores for the OpenCV-threaded methods
   std::vector<std::string> sets;     ///< --sets 'a|b': only the sets whose name contains one of these
   std::vector<std::string> methods;  ///< --methods a,b: only these method keys (bench_detect; opencv always runs)
+  std::string misses;  ///< --misses FILE: bench_detect writes each expected marker's sides and who found it (CSV)
 };
 
 /// True when `filters` is empty or `name` contains one of them.
