@@ -147,14 +147,21 @@ std::vector<internal::Sample> TwoHalves(double gap) {
   return samples;
 }
 
+constexpr PlaneFit kConsensusFits[] = {PlaneFit::kRansac, PlaneFit::kMsac, PlaneFit::kLmeds, PlaneFit::kMlesac};
+
+CloudPoseOptions ConsensusOptions(PlaneFit method, int min_plane_points) {
+  CloudPoseOptions options;
+  options.plane_fit = method;
+  options.min_plane_points = min_plane_points;
+  return options;
+}
+
 TEST(PlaneConsensus, SameSamplesSameAnswerWhateverCameBefore) {
   // The thread's PCL model and estimators are made once and reused: each fit starts the sampler
   // from the same state, or a tag's answer would depend on the tags fitted before it.
   const std::vector<internal::Sample> samples = TwoHalves(0.3);
-  for (const PlaneFit method : {PlaneFit::kRansac, PlaneFit::kMsac, PlaneFit::kLmeds, PlaneFit::kMlesac}) {
-    CloudPoseOptions options;
-    options.plane_fit = method;
-    options.min_plane_points = 10;
+  for (const PlaneFit method : kConsensusFits) {
+    const CloudPoseOptions options = ConsensusOptions(method, 10);
     internal::MarkerPlane first;
     ASSERT_TRUE(internal::FitMarkerPlane(samples, options, first)) << static_cast<int>(method);
     for (int run = 0; run < 6; ++run) {
@@ -183,10 +190,8 @@ TEST(PlaneConsensus, NoModelIsAFailureNotThePreviousTagsPlane) {
 TEST(PlaneConsensus, FewerThanThreeSamplesAreNoPlaneWhateverTheMinimum) {
   // A minimum of zero points (the fuzzer sets it) must not let an empty or two-point set through.
   const std::vector<internal::Sample> all = TwoHalves(0.0);
-  for (const PlaneFit method : {PlaneFit::kRansac, PlaneFit::kMsac, PlaneFit::kLmeds, PlaneFit::kMlesac}) {
-    CloudPoseOptions options;
-    options.plane_fit = method;
-    options.min_plane_points = 0;
+  for (const PlaneFit method : kConsensusFits) {
+    const CloudPoseOptions options = ConsensusOptions(method, 0);
     for (size_t n = 0; n < 3; ++n) {
       internal::MarkerPlane plane;
       EXPECT_FALSE(internal::FitMarkerPlane({all.begin(), all.begin() + n}, options, plane))
