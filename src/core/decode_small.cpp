@@ -5,6 +5,8 @@
 // the test photos than cv::aruco's.)
 #include "decode_small.hpp"
 
+#include "codes.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <numeric>
@@ -28,9 +30,18 @@ constexpr double kCoverageMarginCells = 0.5;
 constexpr double kRidge = 0.02;
 // Mean white cell minus mean black cell, grey levels: below it the "bits" are texture or noise.
 constexpr double kMinContrast = 20.0;
-// The darkest white cell must be brighter than the brightest black cell by this fraction of the
-// contrast: a marker's cells fall into two clear groups, a random patch's values are spread out.
-constexpr double kMinGap = 0.2;
+// A cell is read as white or black when it lies at least this fraction of the contrast from the
+// threshold; nearer, it is unknown (an erasure). A marker's cells fall into two clear groups, a
+// random patch's values are spread out. At 1.5-2 px per cell under a camera's blur the least-squares
+// estimate of a lone white cell among black ones lands near the threshold: tag36h11 markers of
+// 13-19 px in bench's distant set had 1-3 such cells and were refused whole.
+constexpr double kMinCellMargin = 0.1;
+// Unknown cells a reading may leave: as many as keep the chance that a random pattern of the
+// other cells matches some code in some rotation under kMaxChanceMatch (the code's other cells
+// must all match, and exactly one code and rotation may). DICT_4X4_50 (16 bits, 50 codes) and
+// DICT_5X5_100 allow none, as before; tag36h11 (36 bits, 587 codes) and DICT_6X6_250 up to 8.
+constexpr double kMaxChanceMatch = 1e-5;
+constexpr int kMaxUnknownCells = 8;
 // The quiet zone's fitted level must be this fraction of the contrast beyond the threshold, and at
 // least this share of a ring kQuietRingCells outside the square on its side of the threshold.
 constexpr double kQuietMargin = 0.25;
@@ -41,6 +52,11 @@ constexpr int kProfileStepsPerCell = 8;
 // How far (cells) the contour of a black square is pushed outwards before its edges are located
 // again from the grey levels: past a one-pixel contour error, within the one-cell quiet zone.
 constexpr double kExpandCells = 0.6;
+// px: a blurred black square's contour (adaptive threshold, traced through the centres of its edge
+// pixels) lies about this far inside its edges; at 2 px per cell that misplaces every cell by a
+// third of itself. Measured on bench's distant tag36h11 set (0.8 px blur): cv::aruco's contours of
+// 13-24 px markers were 0.6-1.2 px short of the true side.
+constexpr double kGrowPx[] = {0.5, 0.8};
 
 // Bilinear grey value at (x, y); false outside the frame.
 bool Bilinear(const cv::Mat& grey, double x, double y, double& value) {
@@ -152,12 +168,40 @@ bool QuietRing(const cv::Mat& grey, const cv::Matx33d& h, int n, double threshol
   return samples >= 3 * n && quiet >= kMinQuietShare * samples;
 }
 
+// Unknown cells a reading of `dictionary` may leave (kMaxChanceMatch).
+int MaxUnknownCells(const cv::aruco::Dictionary& dictionary) {
+  const int bits = dictionary.markerSize * dictionary.markerSize;
+  const double codes = 4.0 * dictionary.bytesList.rows;
+  int allowed = 0;
+  while (allowed < kMaxUnknownCells && allowed + 1 < bits &&
+         codes * std::ldexp(1.0, allowed + 1 - bits) <= kMaxChanceMatch) {
+    ++allowed;
+  }
+  return allowed;
+}
+
+// The one code and rotation of `dictionary` that agrees with `code` on every bit set in `known`;
+// false when none or several do. With every bit known this is Dictionary::identify with no
+// correction.
+bool LookUp(const cv::aruco::Dictionary& dictionary, uint64_t code, uint64_t known, int& id, int& rotation) {
+  const DictionaryCodes& codes = CodesOf(dictionary);
+  int matches = 0;
+  for (size_t k = 0; k < codes.code.size() && matches < 2; ++k) {
+    if (((codes.code[k] ^ code) & known) != 0) continue;
+    ++matches;
+    id = static_cast<int>(k / 4);
+    rotation = static_cast<int>(k % 4);
+  }
+  return matches == 1;
+}
+
 // Reads the cells of the marker whose black square is h's unit square and looks them up. On
 // success `rotation` is Dictionary::identify's, which is how cv::aruco rotates its corners.
 bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dictionary& dictionary, int border_bits,
                bool detect_inverted, int& id, int& rotation) {
   const int bits = dictionary.markerSize;
   const int n = bits + 2 * border_bits;
+  if (bits * bits > 64) return false;  // no predefined dictionary has more bits than a packed code
   // A cell under a pixel wide has no centre of its own to sample.
   if (ShortestSide(Corners(h)) < n) return false;
   std::vector<double> cells;
@@ -182,32 +226,40 @@ bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dicti
     }
   }
   const double contrast = bright - dark;
-  if (contrast < kMinContrast || sorted[split] - sorted[split - 1] < kMinGap * contrast) return false;
+  if (contrast < kMinContrast) return false;
   const double threshold = 0.5 * (sorted[split - 1] + sorted[split]);
+  const auto unknown = [&](double cell) { return std::fabs(cell - threshold) < kMinCellMargin * contrast; };
 
-  int white_border = 0, border = 0;
+  // Border cells: every known one black (white for an inverted marker); unknown ones count
+  // against the budget below.
+  int white_border = 0, black_border = 0, unknown_cells = 0;
   for (int y = 0; y < n; ++y) {
     for (int x = 0; x < n; ++x) {
       const bool inner = x >= border_bits && y >= border_bits && x < n - border_bits && y < n - border_bits;
       if (inner) continue;
-      ++border;
-      white_border += cells[static_cast<size_t>(y) * n + x] > threshold;
+      const double cell = cells[static_cast<size_t>(y) * n + x];
+      if (unknown(cell)) ++unknown_cells;
+      else if (cell > threshold) ++white_border;
+      else ++black_border;
     }
   }
-  const bool inverted = white_border == border;
+  const bool inverted = black_border == 0 && white_border > 0;
   if (white_border != 0 && !(inverted && detect_inverted)) return false;
   // The quiet zone: its fitted level clearly on the other side from the border, and a ring around
   // the square that stays there.
   if (inverted ? quiet > threshold - kQuietMargin * contrast : quiet < threshold + kQuietMargin * contrast) return false;
   if (!QuietRing(grey, h, n, threshold, inverted)) return false;
-  cv::Mat code(bits, bits, CV_8UC1);
+  unsigned char code[64], known[64];
   for (int y = 0; y < bits; ++y) {
     for (int x = 0; x < bits; ++x) {
-      const bool white = cells[static_cast<size_t>(y + border_bits) * n + x + border_bits] > threshold;
-      code.at<uchar>(y, x) = white != inverted ? 1 : 0;
+      const double cell = cells[static_cast<size_t>(y + border_bits) * n + x + border_bits];
+      known[y * bits + x] = !unknown(cell);
+      unknown_cells += !known[y * bits + x];
+      code[y * bits + x] = (cell > threshold) != inverted;
     }
   }
-  return dictionary.identify(code, id, rotation, 0.0);
+  if (unknown_cells > MaxUnknownCells(dictionary)) return false;
+  return LookUp(dictionary, PackBits(code, bits * bits), PackBits(known, bits * bits), id, rotation);
 }
 
 // Where, along a profile of grey levels running from outside a quad inwards, the bright margin
@@ -278,6 +330,10 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
   // pixel off, pushed out into its quiet zone and located again from the grey levels.
   std::vector<cv::Matx33d> hypotheses = {h};
+  for (const double px : kGrowPx) {
+    const double g = px / MeanSide(quad);
+    hypotheses.push_back(SubSquare(h, -g, -g, 1.0 + g, 1.0 + g));
+  }
   cv::Matx33d inner;
   const double e = kExpandCells / cells;
   const cv::Matx33d expanded = SubSquare(h, -e, -e, 1.0 + e, 1.0 + e);

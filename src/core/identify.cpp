@@ -7,6 +7,7 @@
 // refinement any nearby start converges to the same corner (RefineCorner).
 #include "identify.hpp"
 
+#include "codes.hpp"
 #include "decode_small.hpp"
 #include "refine_corner.hpp"
 
@@ -17,25 +18,6 @@
 #include <opencv2/imgproc.hpp>
 
 namespace arucotag::internal {
-
-namespace {
-
-// Bits set in x (no popcnt instruction in the x86-64 baseline this is built for).
-inline int PopCount(uint64_t x) {
-  x = x - ((x >> 1) & 0x5555555555555555ULL);
-  x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
-  x = (x + (x >> 4)) & 0x0f0f0f0f0f0f0f0fULL;
-  return static_cast<int>((x * 0x0101010101010101ULL) >> 56);
-}
-
-// A dictionary's codes (each rotation) as 64-bit words, so that a look-up is one XOR and a
-// popcount per rotation instead of one per byte. Cached per thread for the last dictionary seen.
-struct DictionaryCodes {
-  const uchar* data = nullptr;
-  int rows = 0, cols = 0;
-  uint64_t checksum = 0;
-  std::vector<uint64_t> code;   // 4 per marker: rotations 0..3
-};
 
 const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   thread_local DictionaryCodes cache;
@@ -66,7 +48,15 @@ const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   return cache;
 }
 
-}  // namespace
+uint64_t PackBits(const unsigned char* bits, int count) {
+  uint64_t packed = 0;
+  for (int k = 0; k < count;) {
+    unsigned byte = 0;
+    for (const int end = std::min(count, k + 8); k < end; ++k) byte = (byte << 1) | (bits[k] ? 1u : 0u);
+    packed = (packed << 8) | byte;  // a last partial byte keeps its bits at its low end
+  }
+  return packed;
+}
 
 // cv::aruco's _extractBits + _getBorderErrors + Dictionary::identify for a black marker, without
 // its per-candidate allocations: the canonical image is sampled straight from the homography
@@ -163,22 +153,13 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   if (border_errors > static_cast<int>(marker_size * marker_size * p.maxErroneousBitsInBorderRate)) return false;
 
   // Dictionary::getByteListFromBits (rotation 0 only, which is all identify compares) + identify.
-  const int nbytes = (marker_size * marker_size + 7) / 8;
-  uchar packed[(kMaxCells * kMaxCells + 7) / 8] = {};
-  int bit = 0, byte = 0;
+  unsigned char inner[kMaxCells * kMaxCells];
   for (int y = 0; y < marker_size; ++y) {
-    for (int x = 0; x < marker_size; ++x) {
-      packed[byte] = static_cast<uchar>((packed[byte] << 1) | bits[y + b][x + b]);
-      if (++bit == 8) {
-        bit = 0;
-        ++byte;
-      }
-    }
+    for (int x = 0; x < marker_size; ++x) inner[y * marker_size + x] = bits[y + b][x + b];
   }
   const int max_correction = static_cast<int>(double(dictionary.maxCorrectionBits) * p.errorCorrectionRate);
   const DictionaryCodes& codes = CodesOf(dictionary);
-  uint64_t candidate = 0;
-  for (int k = 0; k < nbytes; ++k) candidate = (candidate << 8) | packed[k];
+  const uint64_t candidate = PackBits(inner, marker_size * marker_size);
   const uint64_t* code = codes.code.data();
   for (int m = 0; m < dictionary.bytesList.rows; ++m, code += 4) {
     int best = marker_size * marker_size + 1, best_rotation = -1;
