@@ -105,6 +105,18 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
   cv::Mat normal = cv::Mat::zeros(unknowns, unknowns, CV_64F), rhs = cv::Mat::zeros(unknowns, 1, CV_64F);
   std::vector<double> weight(unknowns);
   std::vector<int> touched;
+  // Cell coordinates (unit square x n) of the pixel corners: within a pixel the homography is affine
+  // to a ten-thousandth of a cell at these sizes, so each pixel's samples are interpolated between
+  // its corners instead of each taking a projective division.
+  const int gw = box.width + 1, gh = box.height + 1;
+  thread_local std::vector<cv::Point2d> grid;
+  grid.resize(static_cast<size_t>(gw) * gh);
+  for (int gy = 0; gy < gh; ++gy) {
+    for (int gx = 0; gx < gw; ++gx) {
+      const cv::Vec3d g = to_unit * cv::Vec3d(box.x + gx - 0.5, box.y + gy - 0.5, 1.0);
+      grid[static_cast<size_t>(gy) * gw + gx] = cv::Point2d(g[0] / g[2] * n, g[1] / g[2] * n);
+    }
+  }
   int rows = 0;
   double sum = 0.0;
   for (int y = box.y; y < box.y + box.height; ++y) {
@@ -113,12 +125,14 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       const double cu = c[0] / c[2], cv_ = c[1] / c[2];
       if (cu < -margin || cv_ < -margin || cu > 1.0 + margin || cv_ > 1.0 + margin) continue;
       touched.clear();
+      const cv::Point2d* g = &grid[static_cast<size_t>(y - box.y) * gw + (x - box.x)];
+      const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
       for (int j = 0; j < kCoverageSamples; ++j) {
+        const double fy = (j + 0.5) / kCoverageSamples;
+        const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
         for (int i = 0; i < kCoverageSamples; ++i) {
-          const double sx = x - 0.5 + (i + 0.5) / kCoverageSamples, sy = y - 0.5 + (j + 0.5) / kCoverageSamples;
-          const cv::Vec3d s = to_unit * cv::Vec3d(sx, sy, 1.0);
-          const double u = s[0] / s[2], v = s[1] / s[2];
-          const int cx = static_cast<int>(std::floor(u * n)), cy = static_cast<int>(std::floor(v * n));
+          const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
+          const int cx = static_cast<int>(std::floor(s.x)), cy = static_cast<int>(std::floor(s.y));
           const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
           if (weight[k] == 0.0) touched.push_back(k);
           weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
@@ -195,18 +209,28 @@ bool LookUp(const cv::aruco::Dictionary& dictionary, uint64_t code, uint64_t kno
   return matches == 1;
 }
 
-// Reads the cells of the marker whose black square is h's unit square and looks them up. On
-// success `rotation` is Dictionary::identify's, which is how cv::aruco rotates its corners.
-bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dictionary& dictionary, int border_bits,
+// How far a reading of the cells got.
+enum class Reading {
+  kUnreadable,  // cells under a pixel, or too few pixels to estimate them
+  kFlat,        // no contrast between the cells
+  kMisframed,   // a dark square whose border or quiet zone reads wrong, or too many cells unknown:
+                // what a square that is a fraction of a cell off gives
+  kNoCode,      // every cell clear, and no code of the dictionary matches them
+  kRead,
+};
+
+// Reads the cells of the marker whose black square is h's unit square and looks them up. When read,
+// `rotation` is Dictionary::identify's, which is how cv::aruco rotates its corners.
+Reading ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dictionary& dictionary, int border_bits,
                bool detect_inverted, int& id, int& rotation) {
   const int bits = dictionary.markerSize;
   const int n = bits + 2 * border_bits;
-  if (bits * bits > 64) return false;  // no predefined dictionary has more bits than a packed code
+  if (bits * bits > 64) return Reading::kUnreadable;  // no predefined dictionary has more bits than a packed code
   // A cell under a pixel wide has no centre of its own to sample.
-  if (ShortestSide(Corners(h)) < n) return false;
+  if (ShortestSide(Corners(h)) < n) return Reading::kUnreadable;
   std::vector<double> cells;
   double quiet = 0.0;
-  if (!EstimateCells(grey, h, n, cells, quiet)) return false;
+  if (!EstimateCells(grey, h, n, cells, quiet)) return Reading::kUnreadable;
   // Otsu over the cells: the split of the sorted values with the largest between-class variance.
   std::vector<double> sorted(cells);
   std::sort(sorted.begin(), sorted.end());
@@ -226,7 +250,7 @@ bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dicti
     }
   }
   const double contrast = bright - dark;
-  if (contrast < kMinContrast) return false;
+  if (contrast < kMinContrast) return Reading::kFlat;
   const double threshold = 0.5 * (sorted[split - 1] + sorted[split]);
   const auto unknown = [&](double cell) { return std::fabs(cell - threshold) < kMinCellMargin * contrast; };
 
@@ -244,11 +268,13 @@ bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dicti
     }
   }
   const bool inverted = black_border == 0 && white_border > 0;
-  if (white_border != 0 && !(inverted && detect_inverted)) return false;
+  if (white_border != 0 && !(inverted && detect_inverted)) return Reading::kMisframed;
   // The quiet zone: its fitted level clearly on the other side from the border, and a ring around
   // the square that stays there.
-  if (inverted ? quiet > threshold - kQuietMargin * contrast : quiet < threshold + kQuietMargin * contrast) return false;
-  if (!QuietRing(grey, h, n, threshold, inverted)) return false;
+  if (inverted ? quiet > threshold - kQuietMargin * contrast : quiet < threshold + kQuietMargin * contrast) {
+    return Reading::kMisframed;
+  }
+  if (!QuietRing(grey, h, n, threshold, inverted)) return Reading::kMisframed;
   unsigned char code[64], known[64];
   for (int y = 0; y < bits; ++y) {
     for (int x = 0; x < bits; ++x) {
@@ -258,8 +284,9 @@ bool ReadCells(const cv::Mat& grey, const cv::Matx33d& h, const cv::aruco::Dicti
       code[y * bits + x] = (cell > threshold) != inverted;
     }
   }
-  if (unknown_cells > MaxUnknownCells(dictionary)) return false;
-  return LookUp(dictionary, PackBits(code, bits * bits), PackBits(known, bits * bits), id, rotation);
+  if (unknown_cells > MaxUnknownCells(dictionary)) return Reading::kMisframed;
+  return LookUp(dictionary, PackBits(code, bits * bits), PackBits(known, bits * bits), id, rotation) ? Reading::kRead
+                                                                                                    : Reading::kNoCode;
 }
 
 // Where, along a profile of grey levels running from outside a quad inwards, the bright margin
@@ -311,6 +338,18 @@ bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inve
   return true;
 }
 
+// The marker read as `id` in `rotation` on the black square `square`, when its whole pattern
+// explains the pixels.
+bool Accept(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int border_bits, const cv::Matx33d& square,
+            int id, int rotation, SmallMarker& marker) {
+  std::array<cv::Point2f, 4> corners = Corners(square);
+  std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
+  if (!PatternExplainsPixels(grey, dictionary, id, border_bits, corners)) return false;
+  marker.id = id;
+  marker.corners = corners;
+  return true;
+}
+
 }  // namespace
 
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
@@ -329,7 +368,13 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
 
   // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
   // pixel off, pushed out into its quiet zone and located again from the grey levels.
-  std::vector<cv::Matx33d> hypotheses = {h};
+  std::vector<cv::Matx33d> hypotheses;
+  int id = -1, rotation = 0;
+  const Reading plain = ReadCells(grey, h, dictionary, border_bits, detect_inverted, id, rotation);
+  if (plain == Reading::kRead && Accept(grey, dictionary, border_bits, h, id, rotation, marker)) return true;
+  // The others only when the quad framed a marker-like square wrongly (most clutter reads flat,
+  // unreadable or as a clear code of no marker, and costs nothing more).
+  if (plain != Reading::kMisframed) return false;
   for (const double px : kGrowPx) {
     const double g = px / MeanSide(quad);
     hypotheses.push_back(SubSquare(h, -g, -g, 1.0 + g, 1.0 + g));
@@ -343,14 +388,10 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
     if (InnerSquare(grey, expanded, cells, inverted, inner)) hypotheses.push_back(inner);
   }
   for (const cv::Matx33d& square : hypotheses) {
-    int id = -1, rotation = 0;
-    if (!ReadCells(grey, square, dictionary, border_bits, detect_inverted, id, rotation)) continue;
-    std::array<cv::Point2f, 4> corners = Corners(square);
-    std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
-    if (!PatternExplainsPixels(grey, dictionary, id, border_bits, corners)) continue;
-    marker.id = id;
-    marker.corners = corners;
-    return true;
+    if (ReadCells(grey, square, dictionary, border_bits, detect_inverted, id, rotation) == Reading::kRead &&
+        Accept(grey, dictionary, border_bits, square, id, rotation, marker)) {
+      return true;
+    }
   }
   return false;
 }
