@@ -379,6 +379,10 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
     const double g = px / MeanSide(quad);
     hypotheses.push_back(SubSquare(h, -g, -g, 1.0 + g, 1.0 + g));
   }
+  // Each side moved onto its own grey-level edge: a contour can be off by more on one side than a
+  // uniform growth corrects (blur, tilt, a pixel of noise on the threshold).
+  std::array<cv::Point2f, 4> edges = quad;
+  if (RefineCornersOnEdges(grey, edges, cells) > 0) hypotheses.push_back(SquareToQuad(edges));
   cv::Matx33d inner;
   const double e = kExpandCells / cells;
   const cv::Matx33d expanded = SubSquare(h, -e, -e, 1.0 + e, 1.0 + e);
