@@ -262,15 +262,18 @@ class ReplayTest(unittest.TestCase):
             self.assertTrue(track.filtered)
             if summary.validated_at is None:
                 continue
-            # 5 Hz, 3 hits within 1 s (config/urc.yaml keeps the defaults): the third frame, or up to
-            # the sixth for a far marker the detector misses now and then (stake_12 at 15 m: the fourth).
-            self.assertGreaterEqual(summary.frames_to_validate(), 3, "track %d" % track.track_id)
-            self.assertLessEqual(summary.frames_to_validate(), 6, "track %d" % track.track_id)
-            if track.id == 1:
-                self.assertEqual(summary.frames_to_validate(), 3, "the post, 2-3 m away, is seen in every frame")
             p = track.pose.pose.position
             name, error = min(((n, math.dist((p.x, p.y, p.z), (t.x, t.y, t.z))) for n, t in truth.items()
                                if ids.get(n) == track.id), key=lambda e: e[1])
+            # 5 Hz, 3 hits within 1 s (config/urc.yaml keeps the defaults): the third frame, or up to
+            # the sixth for a marker the detector misses now and then: stake_12 at 15 m, or post_c, which
+            # starts 77 deg off head-on (past the 70 deg the recall counts) and may be read in the first
+            # frame and not the second.
+            self.assertGreaterEqual(summary.frames_to_validate(), 3, "track %d" % track.track_id)
+            self.assertLessEqual(summary.frames_to_validate(), 6, "track %d" % track.track_id)
+            if name == "post_a":
+                self.assertEqual(summary.frames_to_validate(), 3,
+                                 "post_a, 2-3 m away and 46-58 deg off head-on, is seen in every frame")
             print("track %d (id %d, %s): %.1f mm from the truth" % (track.track_id, track.id, name, 1e3 * error))
             self.assertLess(error, 0.02, "track %d (id %d) is %.3f m from %s" % (track.track_id, track.id, error, name))
             matched.add(name)
