@@ -11,6 +11,9 @@
 //   ours_fast     Detect without the whole-pattern fit (pattern_fit_max_side 0), cold
 //   ours_video    Detect with the tracking state carried frame to frame: sequences only
 //   ours_subpix   Detect with corner_refinement subpix (the refinement options' accuracy)
+//   ours_none, ours_contour, ours_apriltag, opencv_contour, opencv_apriltag
+//                 the other refinement options, ours and cv::aruco's with the same option (opencv is
+//                 cv::aruco's "none"): scored, and timed, in the first pass only (accuracy rows)
 //   pipeline      PreprocessFrame (from BGR) + Detect + EstimatePoseFromPNP per tag, as the nodelet
 //                 runs it (tracked on sequences)
 //
@@ -152,6 +155,16 @@ struct Method {
   std::function<void()> reset = [] {};  // forget state carried between frames
   bool carries_state = false;           // on a sequence: reset once per pass, not before every frame
   bool opencv_threaded = true;          // timed again in the all-cores passes
+  bool accuracy_only = false;           // run in the scored pass only (a refinement option's accuracy)
+};
+
+// Each of ours's corner refinement options and cv::aruco's with the same option: the pairs whose
+// corner errors the report holds against each other, on the markers both found.
+const std::vector<std::pair<std::string, std::string>> kRefinementPairs = {
+    {"ours_none", "opencv"},
+    {"ours_subpix", "opencv_subpix"},
+    {"ours_contour", "opencv_contour"},
+    {"ours_apriltag", "opencv_apriltag"},
 };
 
 struct Stats {
@@ -159,20 +172,47 @@ struct Stats {
   std::vector<double> wall, cpu, wall_all_cores;
   int found = 0, expected = 0, false_positives = 0;
   std::vector<double> corner_errors;  // px, found markers with known corners
+  bool one_pass = false;              // an accuracy row: timed in the scored pass only
+  // The same per marker, keyed by (frame, index of the truth in the frame): pairs of detectors are
+  // compared on the markers both found.
+  std::map<std::pair<int, int>, std::array<double, 4>> marker_errors;
 };
 
 // Corner errors of the found markers (truth with corners only), for the accuracy columns.
-void CornerErrors(const Frame& frame, const Detections& d, std::vector<double>& out) {
-  for (const Truth& t : frame.truth) {
+void CornerErrors(int frame_index, const Frame& frame, const Detections& d, Stats& stats) {
+  for (size_t k = 0; k < frame.truth.size(); ++k) {
+    const Truth& t = frame.truth[k];
     if (!t.has_corners) continue;
     for (size_t i = 0; i < d.ids.size(); ++i) {
       if (d.ids[i] != t.id) continue;
       const Score s = ScoreFrame(Frame{frame.name, {}, {}, {t}, {}}, {d.ids[i]}, {d.corners[i]});
       if (s.found == 0) continue;
-      for (int c = 0; c < 4; ++c) out.push_back(cv::norm(d.corners[i][c] - t.corners[c]));
+      std::array<double, 4>& errors = stats.marker_errors[{frame_index, static_cast<int>(k)}];
+      for (int c = 0; c < 4; ++c) {
+        errors[c] = cv::norm(d.corners[i][c] - t.corners[c]);
+        stats.corner_errors.push_back(errors[c]);
+      }
       break;
     }
   }
+}
+
+// Two detectors' corner errors on the markers both found.
+struct PairedErrors {
+  int markers = 0;
+  std::vector<double> first, second;
+};
+
+PairedErrors Paired(const Stats& a, const Stats& b) {
+  PairedErrors p;
+  for (const auto& [key, errors] : a.marker_errors) {
+    const auto other = b.marker_errors.find(key);
+    if (other == b.marker_errors.end()) continue;
+    ++p.markers;
+    p.first.insert(p.first.end(), errors.begin(), errors.end());
+    p.second.insert(p.second.end(), other->second.begin(), other->second.end());
+  }
+  return p;
 }
 
 // One expected marker as one detector saw it (--misses).
@@ -307,6 +347,29 @@ Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
   DetectorConfig subpix = l.config;
   subpix.corner_refinement = CornerRefinement::kSubpix;
   add_ours("ours_subpix", "ours, subpix refinement", subpix, false);
+  // The other refinement options, ours against cv::aruco's with the same option (its "none" is the
+  // reference itself), for their accuracy: one pass.
+  const struct {
+    const char* name;
+    CornerRefinement ours;
+    int opencv;
+  } options[] = {{"none", CornerRefinement::kNone, -1},
+                 {"contour", CornerRefinement::kContour, cv::aruco::CORNER_REFINE_CONTOUR},
+                 {"apriltag", CornerRefinement::kApriltag, cv::aruco::CORNER_REFINE_APRILTAG}};
+  for (const auto& option : options) {
+    if (option.opencv >= 0) {
+      auto parameters = cv::aruco::DetectorParameters::create();
+      parameters->cornerRefinementMethod = option.opencv;
+      Method m{std::string("opencv_") + option.name, std::string("OpenCV detectMarkers, ") + option.name + " refinement",
+               [=](const Frame& f) { return OpenCvDetect(f.grey, dictionary, parameters); }};
+      m.accuracy_only = true;
+      l.methods.push_back(m);
+    }
+    DetectorConfig config = l.config;
+    config.corner_refinement = option.ours;
+    add_ours(std::string("ours_") + option.name, std::string("ours, ") + option.name + " refinement", config, false);
+    l.methods.back().accuracy_only = true;
+  }
 
   auto pipeline = std::make_shared<Detector>(l.config);
   const CameraModel camera = set.camera;
@@ -343,6 +406,7 @@ Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
 void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r) {
   std::vector<Method*> methods;
   for (auto& m : l.methods) {
+    if (m.accuracy_only && all_cores) continue;
     if (!all_cores || m.opencv_threaded) methods.push_back(&m);
   }
   std::map<int, int> first_truth, first_found;  // sequence: id -> frame (ours_video)
@@ -353,6 +417,7 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
       const Frame& frame = set.frames[k];
       for (size_t i = 0; i < methods.size(); ++i) {
         Method& m = *methods[(i + k + rep) % methods.size()];
+        if (m.accuracy_only && !score) continue;
         if (!(set.sequence && m.carries_state)) m.reset();
         const double w0 = WallMs(), c0 = CpuMs();
         const Detections d = m.detect(frame);
@@ -374,7 +439,7 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
         s.found += sc.found;
         s.expected += sc.expected;
         s.false_positives += sc.false_positives;
-        CornerErrors(frame, d, s.corner_errors);
+        CornerErrors(static_cast<int>(k), frame, d, s);
         for (const Truth& t : frame.truth) {
           if (!t.has_corners) continue;
           MarkerOutcome o{m.key, static_cast<int>(k), t.id, 1e9, 0.0,
@@ -434,6 +499,7 @@ SetResult RunSet(const FrameSet& set, int reps, int all_cores_reps, int threads,
   for (const auto& m : lineup.methods) {
     r.order.push_back(m.key);
     r.methods[m.key].label = m.label;
+    r.methods[m.key].one_pass = m.accuracy_only;
   }
   Pass(set, lineup, reps, false, r);
   if (all_cores_reps > 0) {
@@ -513,9 +579,23 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
           << ", \"found\": " << s.found << ", \"expected\": " << s.expected << ", \"false_positives\": " << s.false_positives
           << ", \"corner_errors\": " << s.corner_errors.size()
           << ", \"corner_error_median_px\": " << JsonNumber(Percentile(s.corner_errors, 0.5))
-          << ", \"corner_error_p95_px\": " << JsonNumber(Percentile(s.corner_errors, 0.95)) << "}";
+          << ", \"corner_error_p95_px\": " << JsonNumber(Percentile(s.corner_errors, 0.95))
+          << ", \"one_pass\": " << (s.one_pass ? "true" : "false") << "}";
     }
-    out << "}}" << (i + 1 < results.size() ? "," : "") << "\n";
+    out << "},\n     \"refinement_pairs\": [";
+    bool first_pair = true;
+    for (const auto& [ours, opencv] : kRefinementPairs) {
+      if (!r.methods.count(ours) || !r.methods.count(opencv)) continue;
+      const PairedErrors p = Paired(r.methods.at(ours), r.methods.at(opencv));
+      out << (first_pair ? "" : ", ") << "\n       {\"ours\": " << Json(ours) << ", \"opencv\": " << Json(opencv)
+          << ", \"common_markers\": " << p.markers
+          << ", \"ours_median_px\": " << JsonNumber(Percentile(p.first, 0.5))
+          << ", \"ours_p95_px\": " << JsonNumber(Percentile(p.first, 0.95))
+          << ", \"opencv_median_px\": " << JsonNumber(Percentile(p.second, 0.5))
+          << ", \"opencv_p95_px\": " << JsonNumber(Percentile(p.second, 0.95)) << "}";
+      first_pair = false;
+    }
+    out << "]}" << (i + 1 < results.size() ? "," : "") << "\n";
   }
   out << "  ]\n}\n";
 }

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # `make bench`: times OpenCV's detectMarkers (defaults: the reference), its ArUco3 mode, AprilTag 3
 # (tag36h11 sets), ours (default, fast, video mode), the per-frame pipeline and the nodelet in a
-# manager on the same frames, prints the markdown table and writes $ARUCOTAG_BUILD/bench/results.{json,md}
+# manager on the same frames, and every corner refinement option of ours against cv::aruco's with the
+# same option (scored pass), prints the markdown tables and writes $ARUCOTAG_BUILD/bench/results.{json,md}
 # and bench/RESULTS.md. Frame sets are rendered once into $ARUCOTAG_BUILD/bench/frames.
 #
 # Environment: BENCH_FRAMES (scenes per synthetic and warped set, default 6), BENCH_REPS (passes,
