@@ -160,11 +160,14 @@ struct Method {
 
 // Each of ours's corner refinement options and cv::aruco's with the same option: the pairs whose
 // corner errors the report holds against each other, on the markers both found.
-const std::vector<std::pair<std::string, std::string>> kRefinementPairs = {
-    {"ours_none", "opencv"},
-    {"ours_subpix", "opencv_subpix"},
-    {"ours_contour", "opencv_contour"},
-    {"ours_apriltag", "opencv_apriltag"},
+struct RefinementPair {
+  const char *option, *ours, *opencv;
+};
+const RefinementPair kRefinementPairs[] = {
+    {"none", "ours_none", "opencv"},
+    {"subpix", "ours_subpix", "opencv_subpix"},
+    {"contour", "ours_contour", "opencv_contour"},
+    {"apriltag", "ours_apriltag", "opencv_apriltag"},
 };
 
 struct Stats {
@@ -406,7 +409,6 @@ Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
 void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r) {
   std::vector<Method*> methods;
   for (auto& m : l.methods) {
-    if (m.accuracy_only && all_cores) continue;
     if (!all_cores || m.opencv_threaded) methods.push_back(&m);
   }
   std::map<int, int> first_truth, first_found;  // sequence: id -> frame (ours_video)
@@ -584,10 +586,11 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
     }
     out << "},\n     \"refinement_pairs\": [";
     bool first_pair = true;
-    for (const auto& [ours, opencv] : kRefinementPairs) {
+    for (const auto& [option, ours, opencv] : kRefinementPairs) {
       if (!r.methods.count(ours) || !r.methods.count(opencv)) continue;
       const PairedErrors p = Paired(r.methods.at(ours), r.methods.at(opencv));
-      out << (first_pair ? "" : ", ") << "\n       {\"ours\": " << Json(ours) << ", \"opencv\": " << Json(opencv)
+      out << (first_pair ? "" : ", ") << "\n       {\"option\": " << Json(option) << ", \"ours\": " << Json(ours)
+          << ", \"opencv\": " << Json(opencv)
           << ", \"common_markers\": " << p.markers
           << ", \"ours_median_px\": " << JsonNumber(Percentile(p.first, 0.5))
           << ", \"ours_p95_px\": " << JsonNumber(Percentile(p.first, 0.95))

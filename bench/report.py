@@ -22,9 +22,6 @@ TARGET_CORNER_MEDIAN_PX, TARGET_CORNER_P95_PX = 0.03, 0.2
 TARGET_NODELET, TARGET_POSE_US = 1.1, 50.0
 ORDER = ("opencv", "opencv_subpix", "opencv_aruco3", "apriltag_d1", "apriltag_d2", "ours", "ours_fast", "ours_video",
          "ours_subpix", "pipeline", "nodelet")
-# Corner refinement options: ours and cv::aruco's with the same option (bench_detect's refinement_pairs).
-REFINEMENTS = (("none", "ours_none", "opencv"), ("subpix", "ours_subpix", "opencv_subpix"),
-               ("contour", "ours_contour", "opencv_contour"), ("apriltag", "ours_apriltag", "opencv_apriltag"))
 # Corners are compared to a thousandth of a pixel: the same corners are the same accuracy.
 CORNER_TOLERANCE_PX = 1e-3
 PEERS = ("opencv", "opencv_aruco3", "apriltag_d1", "apriltag_d2")
@@ -179,7 +176,7 @@ def refinement_checks(s):
         return []
     checks = []
     for p in s.get("refinement_pairs", []):
-        option = next((o for o, ours, _ in REFINEMENTS if ours == p["ours"]), p["ours"])
+        option = p["option"]
         if not p["common_markers"]:
             checks.append((option, True, "no marker found by both"))
             continue
@@ -202,7 +199,7 @@ def refinement_table(results):
         verdicts = {option: ok for option, ok, _ in refinement_checks(s)}
         first = True
         for p in s.get("refinement_pairs", []):
-            option = next((o for o, ours, _ in REFINEMENTS if ours == p["ours"]), p["ours"])
+            option = p["option"]
             ours, opencv = s["methods"][p["ours"]], s["methods"][p["opencv"]]
 
             def found(m):
