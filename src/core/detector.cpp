@@ -308,7 +308,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     // Per tag: its pattern fit's blur variance (last frame's for a marker read where tracking
     // predicted it, then this frame's) and whether its refinement confirmed it (a tracked marker is
     // then read where predicted next frame). char: written from parallel_for_.
-    std::vector<char> anchored;
+    std::vector<char> anchored, edges_fitted;
     std::vector<float> blur;
     if (fast) {
       // A moved-from Detector has no tracking state: it still detects, frame by frame.
@@ -316,6 +316,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
                                                     *detector.parameters(), detector.tracking_.get())) {
         if (!add(found.id, found.corners.data())) continue;
         blur.push_back(found.blur);
+        edges_fitted.push_back(found.edges_fitted);
       }
     } else {
       std::vector<std::vector<cv::Point2f>> corners;
@@ -346,6 +347,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     }
     const DetectorConfig& config = detector.config();
     blur.resize(tags.size(), -1.0f);
+    edges_fitted.resize(tags.size(), 0);
     anchored.assign(tags.size(), 1);
     if (config.corner_refinement == CornerRefinement::kEdge) {
       // Tags are independent: refine them on all cores (tens of microseconds each). Tracked markers
@@ -354,7 +356,9 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       // against 0.022 and 0.058 from the edge fit).
       const int cells = detector.dictionary()->markerSize + 2 * config.marker_border_bits;
       cv::parallel_for_(cv::Range(0, static_cast<int>(tags.size())), [&](const cv::Range& range) {
-        for (int i = range.start; i < range.end; ++i) RefineCornersOnEdges(grey, tags[i].corners, cells);
+        for (int i = range.start; i < range.end; ++i) {
+          if (!edges_fitted[i]) RefineCornersOnEdges(grey, tags[i].corners, cells);
+        }
       });
       // The small markers, smallest first, up to pattern_fit_max_markers of them.
       std::vector<std::pair<float, size_t>> small;

@@ -21,6 +21,7 @@ struct Found {
   int id = -1;
   std::array<cv::Point2f, 4> corners{};
   float blur = -1.0f;  ///< read where tracking predicted it: its pattern fit's blur variance last frame (< 0: none)
+  bool edges_fitted = false;  ///< corners already refined by RefineCornersOnEdges (from a settled fit)
 };
 
 /// What one frame leaves for the next.

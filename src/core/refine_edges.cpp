@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "geometry.hpp"
+#include "refine_edges.hpp"
 
 namespace arucotag {
 
@@ -189,5 +190,20 @@ int RefineCornersOnEdges(const cv::Mat& grey, std::array<cv::Point2f, 4>& corner
   }
   return moved;
 }
+
+namespace internal {
+
+bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
+                                 double settled) {
+  if (RefineCornersOnEdges(grey, corners, cells) != 4) return false;
+  std::array<cv::Point2f, 4> next = corners;
+  if (RefineOnce(grey, next, cells) != 4) return false;
+  for (int i = 0; i < 4; ++i) {
+    if (cv::norm(next[i] - corners[i]) > settled) return false;
+  }
+  return true;
+}
+
+}  // namespace internal
 
 }  // namespace arucotag

@@ -1,0 +1,20 @@
+// Internals of the edge fit (refine_edges.cpp) that the fast path uses.
+#pragma once
+
+#include <array>
+
+#include <opencv2/core.hpp>
+
+namespace arucotag::internal {
+
+/// How far (px) one more pass may move a corner of a fit the fast path keeps without cv::aruco's
+/// corners (RefineCornersOnEdgesSettled).
+inline constexpr double kEdgeFitSettledPx = 0.05;
+
+/// RefineCornersOnEdges, true when it measured all four corners in its last pass and one more pass
+/// would move none of them by over `settled` px: the fit has reached its fixed point, which does not
+/// depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns.
+bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
+                                 double settled);
+
+}  // namespace arucotag::internal
