@@ -62,6 +62,35 @@ for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
 # a segfault inside rviz, seen while it starts and just after it subscribes): when rviz dies during
 # a replay, the replay runs once more, and that is reported on stderr.
 died() { grep -q 'rviz-[0-9]*\] process has died' "${LOG}"; }
+# The player ending is not the detector ending: it can still be working through the images queued
+# while rate control let the player run ahead (seconds under the sanitizer, where a CI run drew an
+# empty overlay panel). Waits until the overlay topic has been quiet for 2 s (at most 60 s) and prints
+# how many overlay images came in meanwhile.
+overlay_quiet() {
+  /usr/bin/python3 - "$1" <<'PY'
+import sys
+import time
+
+import rospy
+from rospy.msg import AnyMsg
+
+rospy.init_node("rviz_screenshot_wait", anonymous=True, disable_signals=True)
+last = [0, time.monotonic()]
+
+
+def on_overlay(_):
+    last[0] += 1
+    last[1] = time.monotonic()
+
+
+sub = rospy.Subscriber(sys.argv[1], AnyMsg, on_overlay)
+start = time.monotonic()
+while time.monotonic() - last[1] < 2.0 and time.monotonic() - start < 60.0:
+    time.sleep(0.1)
+sub.unregister()
+print(last[0])
+PY
+}
 replay() {  # one replay up to its last frame; 1 when rviz died, 2 on any other failure
   # The loops below read roslaunch's log as it runs: Python must not buffer it until exit.
   PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
@@ -102,6 +131,9 @@ replay() {  # one replay up to its last frame; 1 when rviz died, 2 on any other 
     kill -0 "${launch}" 2>/dev/null || { echo "rviz_screenshot: roslaunch exited early, see ${LOG}" >&2; return 2; }
     sleep 0.5
   done
+  local late
+  late="$(overlay_quiet /zed/overlay 2>/dev/null || echo unknown)"
+  echo "rviz_screenshot: ${late} overlay image(s) published after the player ended" >&2
   sleep 3  # let rviz draw the last frame
   died && return 1
   for _ in $(seq 10); do  # rosnode list can time out on a busy machine: ask again
