@@ -62,8 +62,9 @@ struct DetectorConfig {
   /// full search found (no candidate there) and found 5 it did not. Serves corner_refinement "edge"
   /// and "subpix" with black markers; other settings, or false, run cv::aruco::detectMarkers itself.
   /// Both paths give candidates under 30 px that cv::aruco's reading rejects a second chance (cells
-  /// estimated from every pixel they touch, exact code match, a quiet zone, and the fitted pattern
-  /// must explain the pixels): tiny and steeply tilted markers cv::aruco misses are found (a 0.15 m
+  /// estimated from every pixel they touch, one code matched within the few cells a random pattern
+  /// would rarely come that close by (2 for tag36h11, none for DICT_4X4_50), a quiet zone, and the
+  /// fitted pattern must explain the pixels): tiny and steeply tilted markers cv::aruco misses are found (a 0.15 m
   /// marker at 10 m, 60 degrees; test_small_markers.cpp), with no more false positives than
   /// cv::aruco's own. Such markers are refined like the others with "edge" and "subpix"; with
   /// "contour" and "apriltag" they keep the decoder's corners (and "apriltag"'s candidate search

@@ -27,6 +27,14 @@ namespace {
 
 double Scale(int level) { return 1.0 / (1 << level); }
 
+// The fast path's own search (not OpenCvQuadsNear, which stays cv::aruco's) fits a full-resolution
+// contour of fewer than kSmallContourPoints points once more at this tolerance (a share of its
+// length) when cv::aruco's gives no quad: the 7 px window's outline of a 12 px marker under blur and
+// noise has a pixel-high step, 5-7 vertices at 0.03 (bench's distant tag36h11 set: 2 of its 11-15 px
+// markers had no candidate for that alone, both found by AprilTag 3).
+constexpr int kSmallContourPoints = 60;
+constexpr double kSmallContourApproxRate = 0.05;
+
 // Level pixel -> full-resolution pixel (pixel centres at integers: a level-l pixel covers 2^l
 // full-resolution pixels).
 cv::Point2f ToFull(const cv::Point2f& p, int level) {
@@ -140,6 +148,10 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps.
     if (128.0 * std::fabs(cv::contourArea(contour)) < double(n) * n) continue;
     cv::approxPolyDP(contour, approx, n * config.polygonal_approx_accuracy_rate, true);
+    if (approx.size() != 4 && !near && task.level == 0 && n < kSmallContourPoints) {
+      cv::approxPolyDP(contour, approx, n * std::max(config.polygonal_approx_accuracy_rate, kSmallContourApproxRate),
+                       true);
+    }
     if (approx.size() != 4 || !cv::isContourConvex(approx)) continue;
     double min_dist_sq = 1e300;
     for (int j = 0; j < 4; ++j) {

@@ -42,6 +42,16 @@ constexpr double kMinCellMargin = 0.1;
 // DICT_5X5_100 allow none, as before; tag36h11 (36 bits, 587 codes) and DICT_6X6_250 up to 8.
 constexpr double kMaxChanceMatch = 1e-5;
 constexpr int kMaxUnknownCells = 8;
+// Known cells a reading may still get wrong (a lone 1.5 px cell under blur can land past the margin
+// on the wrong side): up to kMaxCorrectedCells, as many as keep the chance that a random pattern of
+// the known cells lies that close to some code in some rotation under kMaxChanceCorrected, and only
+// when no other code and rotation lies as close. tag36h11 gets 2 with at most 2 cells unknown (chance
+// 2.3e-5 with all 36 known; AprilTag 3 corrects 2 by default), 1 with 3-6 unknown, none with more;
+// DICT_4X4_50 and DICT_5X5_100 none. The quiet zone and the fitted pattern (PatternExplainsPixels)
+// still have to agree. In bench's distant tag36h11 set 5 of the 11-15 px markers read 1-2 cells
+// wrong; at the 1e-5 of unknown cells only the 3 with one wrong cell would be read.
+constexpr double kMaxChanceCorrected = 1e-4;
+constexpr int kMaxCorrectedCells = 2;
 // The quiet zone's fitted level must be this fraction of the contrast beyond the threshold, and at
 // least this share of a ring kQuietRingCells outside the square on its side of the threshold.
 constexpr double kQuietMargin = 0.25;
@@ -194,14 +204,29 @@ int MaxUnknownCells(const cv::aruco::Dictionary& dictionary) {
   return allowed;
 }
 
-// The one code and rotation of `dictionary` that agrees with `code` on every bit set in `known`;
-// false when none or several do. With every bit known this is Dictionary::identify with no
-// correction.
+// Wrong cells a reading of `dictionary` with `known` cells known may have (kMaxChanceCorrected).
+int MaxCorrectedCells(const cv::aruco::Dictionary& dictionary, int known) {
+  const double codes = 4.0 * dictionary.bytesList.rows;
+  double within = 1.0, ways = 1.0;  // patterns within `allowed` of one code, and C(known, allowed)
+  int allowed = 0;
+  while (allowed < kMaxCorrectedCells && allowed < known) {
+    ways = ways * (known - allowed) / (allowed + 1);
+    if (codes * (within + ways) * std::ldexp(1.0, -known) > kMaxChanceCorrected) break;
+    within += ways;
+    ++allowed;
+  }
+  return allowed;
+}
+
+// The one code and rotation of `dictionary` that agrees with `code` on the bits set in `known` but
+// at most MaxCorrectedCells; false when none or several do. With every bit known and no correction
+// allowed this is Dictionary::identify with no correction.
 bool LookUp(const cv::aruco::Dictionary& dictionary, uint64_t code, uint64_t known, int& id, int& rotation) {
   const DictionaryCodes& codes = CodesOf(dictionary);
+  const int allowed = MaxCorrectedCells(dictionary, PopCount(known));
   int matches = 0;
   for (size_t k = 0; k < codes.code.size() && matches < 2; ++k) {
-    if (((codes.code[k] ^ code) & known) != 0) continue;
+    if (PopCount((codes.code[k] ^ code) & known) > allowed) continue;
     ++matches;
     id = static_cast<int>(k / 4);
     rotation = static_cast<int>(k % 4);

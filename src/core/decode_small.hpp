@@ -44,8 +44,9 @@ struct SmallMarker {
 /// each pixel the area-weighted mean of the cells it covers through the quad's homography; they are
 /// split into black and white by Otsu's threshold over the cells; a marker
 /// needs a clear gap between the two, a whole black border (white with `detect_inverted`, bits then
-/// inverted), a quiet zone around it, an exact dictionary match in one of the four rotations (no
-/// error correction) and a pattern that explains the pixels (PatternExplainsPixels).
+/// inverted), a quiet zone around it, one dictionary code and rotation that the known cells match but
+/// at most a few (2 of tag36h11's 36 cells, none of DICT_4X4_50's; see kMaxChanceCorrected) and no
+/// other as close, and a pattern that explains the pixels (PatternExplainsPixels).
 /// Samples outside the frame are skipped (Detect's candidates keep min_distance_to_border from it).
 /// Returns false for quads whose side SmallCandidateSide refuses, or not a marker.
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
