@@ -192,13 +192,23 @@ bool QuietRing(const cv::Mat& grey, const cv::Matx33d& h, int n, double threshol
   return samples >= 3 * n && quiet >= kMinQuietShare * samples;
 }
 
+// The chance that a random pattern of `known` cells lies within `wrong` cells of some code of
+// `dictionary` in some rotation.
+double RandomMatchChance(const cv::aruco::Dictionary& dictionary, int known, int wrong) {
+  double within = 0.0, ways = 1.0;  // patterns within e cells of one code, and C(known, e)
+  for (int e = 0; e <= wrong; ++e) {
+    within += ways;
+    ways = ways * (known - e) / (e + 1);
+  }
+  return 4.0 * dictionary.bytesList.rows * within * std::ldexp(1.0, -known);
+}
+
 // Unknown cells a reading of `dictionary` may leave (kMaxChanceMatch).
 int MaxUnknownCells(const cv::aruco::Dictionary& dictionary) {
   const int bits = dictionary.markerSize * dictionary.markerSize;
-  const double codes = 4.0 * dictionary.bytesList.rows;
   int allowed = 0;
   while (allowed < kMaxUnknownCells && allowed + 1 < bits &&
-         codes * std::ldexp(1.0, allowed + 1 - bits) <= kMaxChanceMatch) {
+         RandomMatchChance(dictionary, bits - allowed - 1, 0) <= kMaxChanceMatch) {
     ++allowed;
   }
   return allowed;
@@ -206,13 +216,9 @@ int MaxUnknownCells(const cv::aruco::Dictionary& dictionary) {
 
 // Wrong cells a reading of `dictionary` with `known` cells known may have (kMaxChanceCorrected).
 int MaxCorrectedCells(const cv::aruco::Dictionary& dictionary, int known) {
-  const double codes = 4.0 * dictionary.bytesList.rows;
-  double within = 1.0, ways = 1.0;  // patterns within `allowed` of one code, and C(known, allowed)
   int allowed = 0;
-  while (allowed < kMaxCorrectedCells && allowed < known) {
-    ways = ways * (known - allowed) / (allowed + 1);
-    if (codes * (within + ways) * std::ldexp(1.0, -known) > kMaxChanceCorrected) break;
-    within += ways;
+  while (allowed < kMaxCorrectedCells && allowed < known &&
+         RandomMatchChance(dictionary, known, allowed + 1) <= kMaxChanceCorrected) {
     ++allowed;
   }
   return allowed;
