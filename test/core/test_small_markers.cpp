@@ -141,11 +141,11 @@ TEST(SmallMarkers, BlurredTag36h11WithTwoPixelCellsIsRead) {
 // A marker of `dictionary` with `cell` px cells on a white 120 px frame (top-left at 40, 40), with
 // the data cells `flipped` (row by row) printed the other colour and a 0.6 px blur; `corners` get its
 // black square.
-cv::Mat MarkerWithFlippedCells(const cv::aruco::Dictionary& dictionary, int id, const std::vector<int>& flipped,
-                               int cell, std::array<cv::Point2f, 4>& corners) {
-  const int bits = dictionary.markerSize, side = (bits + 2) * cell;
+cv::Mat MarkerWithFlippedCells(const cv::Ptr<cv::aruco::Dictionary>& dictionary, int id,
+                               const std::vector<int>& flipped, int cell, std::array<cv::Point2f, 4>& corners) {
+  const int bits = dictionary->markerSize, side = (bits + 2) * cell;
   cv::Mat marker;
-  cv::aruco::drawMarker(cv::makePtr<cv::aruco::Dictionary>(dictionary), id, side, marker, 1);
+  cv::aruco::drawMarker(dictionary, id, side, marker, 1);
   for (const int k : flipped) {
     cv::Mat square = marker(cv::Rect((k % bits + 1) * cell, (k / bits + 1) * cell, cell, cell));
     square = 255 - square;
@@ -168,7 +168,7 @@ TEST(SmallMarkers, SecondChanceCorrectsTwoCellsOfTag36h11AndNoneOfFourByFour) {
   for (size_t wrong = 0; wrong <= 3; ++wrong) {
     std::array<cv::Point2f, 4> corners;
     const std::vector<int> flipped(cells.begin(), cells.begin() + wrong);
-    const cv::Mat grey = MarkerWithFlippedCells(*tag36h11, 100, flipped, 3, corners);
+    const cv::Mat grey = MarkerWithFlippedCells(tag36h11, 100, flipped, 3, corners);
     internal::SmallMarker read;
     const bool found = internal::DecodeSmall(grey, corners, *tag36h11, 1, false, read);
     EXPECT_EQ(found, wrong <= 2) << wrong << " wrong cells";
@@ -177,7 +177,7 @@ TEST(SmallMarkers, SecondChanceCorrectsTwoCellsOfTag36h11AndNoneOfFourByFour) {
   for (size_t wrong = 0; wrong <= 1; ++wrong) {
     std::array<cv::Point2f, 4> corners;
     const std::vector<int> flipped(cells.begin(), cells.begin() + wrong);
-    const cv::Mat grey = MarkerWithFlippedCells(*four, kId, flipped, 4, corners);
+    const cv::Mat grey = MarkerWithFlippedCells(four, kId, flipped, 4, corners);
     internal::SmallMarker read;
     EXPECT_EQ(internal::DecodeSmall(grey, corners, *four, 1, false, read), wrong == 0) << wrong << " wrong cells";
   }
