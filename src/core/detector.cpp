@@ -305,17 +305,17 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     constexpr int kMinFastPathSide = 32;
     const bool fast = internal::FastPathSupports(detector.config()) && grey.cols >= kMinFastPathSide &&
                       grey.rows >= kMinFastPathSide;
-    // Per tag: its pattern fit's blur variance (last frame's for a marker read where tracking
-    // predicted it, then this frame's) and whether its refinement confirmed it (a tracked marker is
-    // then read where predicted next frame). char: written from parallel_for_.
+    // Per tag: its pattern fit (last frame's for a marker read where tracking predicted it, then
+    // this frame's) and whether its refinement confirmed it (a tracked marker is then read where
+    // predicted next frame). char: written from parallel_for_.
     std::vector<char> anchored, edges_fitted;
-    std::vector<float> blur;
+    std::vector<internal::FitMemory> fits;
     if (fast) {
       // A moved-from Detector has no tracking state: it still detects, frame by frame.
       for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
                                                     *detector.parameters(), detector.tracking_.get())) {
         if (!add(found.id, found.corners.data())) continue;
-        blur.push_back(found.blur);
+        fits.push_back(found.fit);
         edges_fitted.push_back(found.edges_fitted);
       }
     } else {
@@ -346,7 +346,10 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       }
     }
     const DetectorConfig& config = detector.config();
-    blur.resize(tags.size(), -1.0f);
+    // Last frame's fits in, this frame's out: a tag that is not fitted this frame has none.
+    fits.resize(tags.size());
+    std::vector<internal::FitMemory> last(tags.size());
+    last.swap(fits);
     edges_fitted.resize(tags.size(), 0);
     anchored.assign(tags.size(), 1);
     if (config.corner_refinement == CornerRefinement::kEdge) {
@@ -375,17 +378,29 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
           const size_t i = small[k].second;
           ArucoTag& tag = tags[i];
           const cv::Mat black = MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits);
-          // A tracked marker's fit starts from last frame's blur (one start instead of four).
-          float variance = blur[i];
-          const bool ok = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance);
-          anchored[i] = ok;
-          blur[i] = ok ? variance : -1.0f;
+          // A tracked marker's fit starts from last frame's: its blur (one start instead of four),
+          // and its corners where the edge fit puts them plus the offset the pattern fit added last
+          // frame (the edge fit's bias changes little from frame to frame), so that one unverified
+          // Gauss-Newton step usually ends it.
+          const internal::FitMemory& before = last[i];
+          const std::array<cv::Point2f, 4> edges = tag.corners;
+          const bool carried = before.blur >= 0.0f;
+          if (carried) {
+            for (int c = 0; c < 4; ++c) tag.corners[c] += before.offset[c];
+          }
+          float variance = before.blur;
+          anchored[i] = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance,
+                                                             carried ? 0 : internal::kVerifyEveryStep);
+          if (!anchored[i]) {
+            tag.corners = edges;
+            continue;
+          }
+          fits[i].blur = variance;
+          for (int c = 0; c < 4; ++c) fits[i].offset[c] = tag.corners[c] - edges[c];
         }
       });
-    } else {
-      std::fill(blur.begin(), blur.end(), -1.0f);
     }
-    if (fast && config.tracking) internal::UpdateTracked(detector.tracking_.get(), tags, anchored, blur);
+    if (fast && config.tracking) internal::UpdateTracked(detector.tracking_.get(), tags, anchored, fits);
     return tags;
   } catch (const cv::Exception& e) {
     throw Error(std::string("Detect: OpenCV cannot run this configuration on a ") + std::to_string(frame.cols) + "x" +

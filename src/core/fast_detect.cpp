@@ -220,7 +220,7 @@ bool ReadAtPrediction(const cv::Mat& grey, const TrackedMarker& m, const Detecto
   if (!Identify(grey, predicted, dictionary, p, id, rotation) || id != m.id || rotation != 0) return false;
   out.id = id;
   out.corners = predicted;
-  out.blur = m.blur;
+  out.fit = m.fit;
   if (config.corner_refinement == CornerRefinement::kSubpix) {
     RefineMarkerCorners(grey, out.corners, dictionary.markerSize + 2 * p.markerBorderBits, p.cornerRefinementWinSize,
                         p.cornerRefinementMaxIterations, p.cornerRefinementMinAccuracy);
@@ -388,7 +388,7 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
 }
 
 void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, const std::vector<char>& anchored,
-                   const std::vector<float>& blur) {
+                   const std::vector<FitMemory>& fits) {
   if (!state) return;
   std::lock_guard<std::mutex> lock(state->mutex);
   for (auto& m : state->markers) {
@@ -401,7 +401,7 @@ void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, cons
       m.velocity += Centre(tags[i].corners) - c;
       m.corners = tags[i].corners;
       m.anchored = anchored[i] != 0;
-      m.blur = blur[i];
+      m.fit = fits[i];
       break;
     }
   }

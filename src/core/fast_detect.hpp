@@ -16,11 +16,17 @@
 
 namespace arucotag::internal {
 
+/// What a marker's pattern fit leaves for the fit of the same marker in the next frame.
+struct FitMemory {
+  float blur = -1.0f;  ///< the fitted blur variance (px^2); < 0: no fit
+  std::array<cv::Point2f, 4> offset{};  ///< the fitted corners minus the edge fit's, per corner
+};
+
 /// A marker found in a frame, before the id lists are applied.
 struct Found {
   int id = -1;
   std::array<cv::Point2f, 4> corners{};
-  float blur = -1.0f;  ///< read where tracking predicted it: its pattern fit's blur variance last frame (< 0: none)
+  FitMemory fit;  ///< read where tracking predicted it: its pattern fit of last frame (blur < 0: none)
   bool edges_fitted = false;  ///< corners already refined by RefineCornersOnEdges (from a settled fit)
 };
 
@@ -33,7 +39,7 @@ struct TrackedMarker {
   /// Its refinement converged last frame: next frame it is read where it is predicted, without a
   /// search (its region is searched when it is not).
   bool anchored = false;
-  float blur = -1.0f;  ///< its pattern fit's blur variance (px^2), < 0 without one
+  FitMemory fit;  ///< its pattern fit (blur < 0 without one)
 };
 
 struct TrackingState {
@@ -72,11 +78,11 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
                               FrameReport* report = nullptr);
 
 /// After Detect's refinement: this frame's tracked markers take their refined corners (the next
-/// frame's prediction starts from them) and their pattern fit's blur variance (`blur[i]` of tags[i],
-/// < 0 without one) and, with `anchored[i]` false (its refinement could not confirm it), are searched
+/// frame's prediction starts from them) and their pattern fit (`fits[i]` of tags[i], blur < 0
+/// without one) and, with `anchored[i]` false (its refinement could not confirm it), are searched
 /// for next frame rather than read where predicted. Tags are matched to markers by id and position.
 /// No-op with `state` null.
 void UpdateTracked(TrackingState* state, const std::vector<ArucoTag>& tags, const std::vector<char>& anchored,
-                   const std::vector<float>& blur);
+                   const std::vector<FitMemory>& fits);
 
 }  // namespace arucotag::internal

@@ -69,6 +69,8 @@ constexpr double kNoiseFloorStep = 0.01;
 // print bleeds (white cells come out as rounded blobs), where the edge fit is kept.
 constexpr double kMaxOutliers = 0.05;
 constexpr double kConverged = 1e-3;  // px: smaller steps changed corners by < 0.001 px (measured)
+// px: with a step budget, a step that moves no corner further than this is taken unverified.
+constexpr double kUnverifiedStep = 0.1;
 
 double Cross(const Vec2& a, const Vec2& b) { return a.x * b.y - a.y * b.x; }
 
@@ -567,7 +569,8 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
 // the result is not to be trusted.
 // `blur` in: the blur variance to start from (a tracked marker's from the last frame), or < 0 to
 // try kStartBlurVariances; out: the fitted one.
-bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners, double& blur) {
+bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners, double& blur,
+                int verified_steps) {
   const int cells = black.rows;
   const std::array<Vec2, 4> start = corners;
   PatternFit fit(grey, black, cells, start);
@@ -652,6 +655,13 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     // Converged: the corners would move by less than kConverged. (Testing this before the trial
     // also ends the fit where a tiny step no longer lowers the cost in float arithmetic.)
     if (largest < kConverged) break;
+    if (iteration >= verified_steps && largest < kUnverifiedStep) {
+      // A start this close to the fit lies where the cost is quadratic: the Gauss-Newton step lands
+      // on the minimum without an evaluation to confirm it.
+      for (int p = 0; p < kParams; ++p) params[p] += step(p);
+      params[kBlur] = std::clamp(params[kBlur], 0.0, kMaxBlurVariance);
+      break;
+    }
     double trial[kParams];
     for (int p = 0; p < kParams; ++p) trial[p] = params[p] + step(p);
     trial[kBlur] = std::clamp(trial[kBlur], 0.0, kMaxBlurVariance);
@@ -705,13 +715,13 @@ size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv
 
 bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
   float blur = -1.0f;
-  return internal::RefineCornersOnPatternFrom(grey, black, corners, blur);
+  return internal::RefineCornersOnPatternFrom(grey, black, corners, blur, internal::kVerifyEveryStep);
 }
 
 namespace internal {
 
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
-                                float& blur_variance) {
+                                float& blur_variance, int verified_steps) {
   CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
   const int cells = black.rows;
   const double side = internal::MeanSide(corners);
@@ -748,7 +758,7 @@ bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::
   std::array<Vec2, 4> local;
   for (int i = 0; i < 4; ++i) local[i] = {corners[i].x - box.x, corners[i].y - box.y};
   double blur = blur_variance;
-  if (!FitPattern(patch, black, local, blur)) return false;
+  if (!FitPattern(patch, black, local, blur, verified_steps)) return false;
   std::array<cv::Point2f, 4> refined;
   for (int i = 0; i < 4; ++i) {
     const Vec2 p(local[i].x + box.x, local[i].y + box.y);
