@@ -390,7 +390,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
           }
           float variance = before.blur;
           anchored[i] = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance,
-                                                             carried ? 0 : internal::kVerifyEveryStep);
+                                                             carried ? internal::kCarriedLastStep : internal::kColdLastStep);
           if (!anchored[i]) {
             tag.corners = edges;
             continue;

@@ -69,8 +69,6 @@ constexpr double kNoiseFloorStep = 0.01;
 // print bleeds (white cells come out as rounded blobs), where the edge fit is kept.
 constexpr double kMaxOutliers = 0.05;
 constexpr double kConverged = 1e-3;  // px: smaller steps changed corners by < 0.001 px (measured)
-// px: with a step budget, a step that moves no corner further than this is taken unverified.
-constexpr double kUnverifiedStep = 0.1;
 
 double Cross(const Vec2& a, const Vec2& b) { return a.x * b.y - a.y * b.x; }
 
@@ -570,7 +568,7 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
 // `blur` in: the blur variance to start from (a tracked marker's from the last frame), or < 0 to
 // try kStartBlurVariances; out: the fitted one.
 bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& corners, double& blur,
-                int verified_steps) {
+                double last_step) {
   const int cells = black.rows;
   const std::array<Vec2, 4> start = corners;
   PatternFit fit(grey, black, cells, start);
@@ -655,9 +653,9 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     // Converged: the corners would move by less than kConverged. (Testing this before the trial
     // also ends the fit where a tiny step no longer lowers the cost in float arithmetic.)
     if (largest < kConverged) break;
-    if (iteration >= verified_steps && largest < kUnverifiedStep) {
-      // A start this close to the fit lies where the cost is quadratic: the Gauss-Newton step lands
-      // on the minimum without an evaluation to confirm it.
+    if (largest < last_step) {
+      // This close to the fit the cost is quadratic: the Gauss-Newton step lands on the minimum
+      // without an evaluation to confirm it.
       for (int p = 0; p < kParams; ++p) params[p] += step(p);
       params[kBlur] = std::clamp(params[kBlur], 0.0, kMaxBlurVariance);
       break;
@@ -715,13 +713,13 @@ size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv
 
 bool RefineCornersOnPattern(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners) {
   float blur = -1.0f;
-  return internal::RefineCornersOnPatternFrom(grey, black, corners, blur, internal::kVerifyEveryStep);
+  return internal::RefineCornersOnPatternFrom(grey, black, corners, blur, internal::kColdLastStep);
 }
 
 namespace internal {
 
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
-                                float& blur_variance, int verified_steps) {
+                                float& blur_variance, double last_step) {
   CV_Assert(grey.type() == CV_8UC1 && black.type() == CV_8UC1 && black.rows == black.cols);
   const int cells = black.rows;
   const double side = internal::MeanSide(corners);
@@ -758,7 +756,7 @@ bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::
   std::array<Vec2, 4> local;
   for (int i = 0; i < 4; ++i) local[i] = {corners[i].x - box.x, corners[i].y - box.y};
   double blur = blur_variance;
-  if (!FitPattern(patch, black, local, blur, verified_steps)) return false;
+  if (!FitPattern(patch, black, local, blur, last_step)) return false;
   std::array<cv::Point2f, 4> refined;
   for (int i = 0; i < 4; ++i) {
     const Vec2 p(local[i].x + box.x, local[i].y + box.y);

@@ -19,12 +19,13 @@ size_t PatternFitEvaluations();
 
 /// RefineCornersOnPattern with the fit's blur: `blur_variance` (px^2) in, the variance to start from
 /// (a tracked marker's fit of the last frame; < 0: the usual start, which tries four), out, the
-/// fitted one when it returns true. After `verified_steps` Gauss-Newton steps (each confirmed by
-/// evaluating the cost where it lands), a step that moves no corner by 0.1 px or more is taken
-/// without that evaluation and ends the fit: 0 for a start already at about the fit's accuracy (a
-/// tracked marker's corners moved by last frame's fit offset), one evaluation instead of four.
-inline constexpr int kVerifyEveryStep = 1 << 30;  ///< verified_steps for the full fit
+/// fitted one when it returns true. A Gauss-Newton step that moves no corner by `last_step` px or
+/// more is taken without evaluating the cost where it lands, and ends the fit: kColdLastStep from
+/// the edge fit's corners, kCarriedLastStep from a start already at about the fit's accuracy (a
+/// tracked marker's edge fit moved by last frame's fit offset).
+inline constexpr double kColdLastStep = 0.01;
+inline constexpr double kCarriedLastStep = 0.1;
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
-                                float& blur_variance, int verified_steps);
+                                float& blur_variance, double last_step);
 
 }  // namespace arucotag::internal
