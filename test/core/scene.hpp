@@ -52,14 +52,19 @@ inline double Nees(const PoseCovariance& covariance, int first, const cv::Vec3d&
   return e.dot(block.inv(cv::DECOMP_CHOLESKY) * e);
 }
 
+/// Renders the markers as the grey image the detector takes.
+inline cv::Mat RenderGrey(const sim::Camera& camera, const std::vector<sim::Marker>& markers,
+                          const sim::RenderOptions& options) {
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, markers, options), grey);
+  return grey;
+}
+
 /// Renders the markers and runs the default detector (sub-pixel corners) on the grey image.
 inline std::vector<ArucoTag> RenderAndDetect(const sim::Camera& camera, const std::vector<sim::Marker>& markers,
                                              DetectorConfig config = {}, sim::RenderOptions options = {}) {
   options.dictionary = DictionaryFromName(config.dictionary);
-  const cv::Mat image = sim::RenderScene(camera, markers, options);
-  cv::Mat grey;
-  PreprocessFrame(image, grey);
-  return Detect(grey, Detector(config));
+  return Detect(RenderGrey(camera, markers, options), Detector(config));
 }
 
 /// A photo from test/data as the grey image the detector takes.

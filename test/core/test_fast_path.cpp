@@ -90,9 +90,7 @@ struct Sequence {
     options.seed = 5;  // the same clutter every frame: one scene
     options.noise_sigma = 2.0;
     options.blur_sigma = 0.5;
-    cv::Mat grey;
-    PreprocessFrame(sim::RenderScene(camera, all, options), grey);
-    return grey;
+    return test::RenderGrey(camera, all, options);
   }
 };
 

@@ -335,8 +335,7 @@ TEST(PatternFit, TrackedFitStartsFromLastFramesOffsetAndTakesOneStep) {
     options.seed = 5;  // the same clutter every frame: one scene
     options.noise_sigma = 2.0;
     options.blur_sigma = 1.0;
-    cv::Mat grey;
-    PreprocessFrame(sim::RenderScene(camera, markers, options), grey);
+    const cv::Mat grey = test::RenderGrey(camera, markers, options);
     size_t before = internal::PatternFitEvaluations();
     const auto tags = Detect(grey, tracked);
     const size_t tracked_count = internal::PatternFitEvaluations() - before;
