@@ -229,12 +229,11 @@ bool ReadAtPrediction(const cv::Mat& grey, const TrackedMarker& m, const Detecto
 }
 
 // Pairs this frame's markers with the previous frame's by id (nearest predicted centre when an id
-// repeats); previous markers not found coast on at their velocity for kCoastFrames. A marker a search
-// found (not read at its prediction) takes the pattern fit of the one it continues, as a read one does.
-std::vector<TrackedMarker> Track(std::vector<Found>& found, const std::vector<TrackedMarker>& previous) {
+// repeats); previous markers not found coast on at their velocity for kCoastFrames.
+std::vector<TrackedMarker> Track(const std::vector<Found>& found, const std::vector<TrackedMarker>& previous) {
   std::vector<TrackedMarker> next;
   std::vector<bool> used(previous.size(), false);
-  for (auto& f : found) {
+  for (const auto& f : found) {
     TrackedMarker t;
     t.id = f.id;
     t.corners = f.corners;
@@ -253,7 +252,6 @@ std::vector<TrackedMarker> Track(std::vector<Found>& found, const std::vector<Tr
       used[best] = true;
       // A coasting marker's corners were moved on each frame: this is one frame's motion.
       t.velocity = c - Centre(previous[best].corners);
-      if (f.fit.blur < 0.0f) f.fit = previous[best].fit;
     }
     next.push_back(t);
   }
