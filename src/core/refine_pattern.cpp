@@ -197,9 +197,8 @@ Kernel BlurKernel(double variance) {
 
 class PatternFit {
  public:
-  // Channels per coverage pixel: the covered fraction and its 8 corner derivatives, padded to a
-  // multiple of 4 floats so the blur's inner loops vectorise.
-  static constexpr int kChannels = 12;
+  // Corner derivatives per pixel (8 floats: one AVX vector, two SSE ones).
+  static constexpr int kSlopes = 8;
 
   PatternFit(const cv::Mat& grey, const cv::Mat& black, int cells, const std::array<Vec2, 4>& corners)
       : grey_(grey), black_(black), cells_(cells) {
@@ -224,7 +223,7 @@ class PatternFit {
     const int n = cells_ + 1;
     GridVertices(corners, origin_, cells_, vertices_);
     // Vertex derivatives by central differences: the grid is a smooth function of the corners.
-    vertex_jac_.assign(vertices_.size() * 16, 0.0);
+    vertex_jac_.assign(vertices_.size() * 16, 0.0f);
     constexpr double kStep = 1e-4;
     for (int k = 0; k < 8; ++k) {
       std::array<Vec2, 4> plus = corners, minus = corners;
@@ -233,11 +232,14 @@ class PatternFit {
       GridVertices(plus, origin_, cells_, plus_);
       GridVertices(minus, origin_, cells_, minus_);
       for (size_t i = 0; i < vertices_.size(); ++i) {
-        vertex_jac_[i * 16 + k] = (plus_[i].x - minus_[i].x) / (2 * kStep);
-        vertex_jac_[i * 16 + 8 + k] = (plus_[i].y - minus_[i].y) / (2 * kStep);
+        vertex_jac_[i * 16 + k] = static_cast<float>((plus_[i].x - minus_[i].x) / (2 * kStep));
+        vertex_jac_[i * 16 + 8 + k] = static_cast<float>((plus_[i].y - minus_[i].y) / (2 * kStep));
       }
     }
-    cover_.assign(static_cast<size_t>(roi_.area()) * kChannels, 0.0f);
+    coverage_.assign(static_cast<size_t>(roi_.area()), 0.0f);
+    slopes_.resize(static_cast<size_t>(roi_.area()) * kSlopes);  // zeroed per pixel in AddQuad
+    on_boundary_.assign(static_cast<size_t>(roi_.area()), 0);
+    boundary_.clear();
     // A run of black cells along a row is one convex quad under the homography: fewer, larger
     // polygons and no shared edges inside a run.
     for (int row = 0; row < cells_; ++row) {
@@ -259,69 +261,74 @@ class PatternFit {
   }
 
   // The coverage (and, with `jac`, its corner derivatives) at every sample after a Gaussian blur of
-  // the given variance: rows are blurred over the whole coverage area, columns only at the samples.
+  // the given variance. The coverage plane is blurred along rows over the whole coverage area, then
+  // along columns on the rows that hold samples; the corner derivatives, non-zero only on the pixels
+  // a cell boundary crosses, are scattered along rows from those pixels alone and blurred along
+  // columns only at the samples.
   ARUCOTAG_VECTOR_CLONES void Blurred(double variance, std::vector<float>& cover, std::vector<float>* jac) {
     const Kernel kernel = BlurKernel(variance);
+    const int r = kernel.radius;
     std::array<float, 2 * kBlurRadius + 1> taps;
     for (int k = 0; k < 2 * kBlurRadius + 1; ++k) taps[k] = static_cast<float>(kernel.taps[k]);
-    const int r = kernel.radius;
-    cover.assign(samples_.size(), 0.0f);
-    if (!jac) {
-      // Coverage only: one channel.
-      rows_.assign(static_cast<size_t>(roi_.area()), 0.0f);
-      for (int y = 0; y < roi_.height; ++y) {
-        for (int x = 0; x < roi_.width; ++x) {
-          const float in = cover_[(static_cast<size_t>(y) * roi_.width + x) * kChannels];
-          if (in == 0.0f) continue;
-          float* out = &rows_[static_cast<size_t>(y) * roi_.width];
-          for (int k = std::max(-r, -x); k <= std::min(r, roi_.width - 1 - x); ++k) out[x + k] += taps[k + kBlurRadius] * in;
-        }
-      }
-      for (size_t i = 0; i < samples_.size(); ++i) {
-        const int x = samples_[i].x - roi_.x, y = samples_[i].y - roi_.y;
-        float sum = 0.0f;
-        for (int k = -r; k <= r; ++k) sum += taps[k + kBlurRadius] * rows_[static_cast<size_t>(y + k) * roi_.width + x];
-        cover[i] = sum;
-      }
-      return;
-    }
-    rows_.assign(static_cast<size_t>(roi_.area()) * kChannels, 0.0f);
+    const float* tap = taps.data() + kBlurRadius;  // tap[k], k in [-r, r]
+    const int width = roi_.width;
+    const size_t n = samples_.size();
+    cover.resize(n);
+    // Rows of the coverage plane, each through a copy padded with r zeros on both sides.
+    rows_.resize(static_cast<size_t>(roi_.area()));
+    padded_.assign(static_cast<size_t>(width + 2 * kBlurRadius), 0.0f);
     for (int y = 0; y < roi_.height; ++y) {
-      for (int x = 0; x < roi_.width; ++x) {
-        const float* source = &cover_[(static_cast<size_t>(y) * roi_.width + x) * kChannels];
-        float moves = 0.0f;  // any corner derivative (a plain loop: std::all_of is a call here)
-        for (int c = 1; c < 9; ++c) moves = std::max(moves, std::abs(source[c]));
-        if (moves == 0.0f) {
-          // No boundary through the pixel (outside every cell, or inside one): coverage only.
-          if (source[0] == 0.0f) continue;
-          for (int k = std::max(-r, -x); k <= std::min(r, roi_.width - 1 - x); ++k) {
-            rows_[(static_cast<size_t>(y) * roi_.width + x + k) * kChannels] += taps[k + kBlurRadius] * source[0];
-          }
-          continue;
-        }
-        // A local copy: the compiler cannot otherwise rule out that `out` overlaps it, and does not
-        // vectorise.
-        alignas(16) float in[kChannels];
-        std::copy(source, source + kChannels, in);
-        // Scatter the pixel to its row neighbours.
-        for (int k = std::max(-r, -x); k <= std::min(r, roi_.width - 1 - x); ++k) {
-          const float w = taps[k + kBlurRadius];
-          float* out = &rows_[(static_cast<size_t>(y) * roi_.width + x + k) * kChannels];
-          for (int c = 0; c < kChannels; ++c) out[c] += w * in[c];
-        }
+      const float* in = &coverage_[static_cast<size_t>(y) * width];
+      float* __restrict out = &rows_[static_cast<size_t>(y) * width];
+      float* __restrict pad = padded_.data() + kBlurRadius;
+      std::copy(in, in + width, pad);
+      std::fill(out, out + width, 0.0f);
+      for (int k = -r; k <= r; ++k) {
+        const float w = tap[k];
+        const float* shifted = pad + k;
+        for (int x = 0; x < width; ++x) out[x] += w * shifted[x];
       }
     }
-    jac->assign(samples_.size() * 8, 0.0f);
-    for (size_t i = 0; i < samples_.size(); ++i) {
-      const int x = samples_[i].x - roi_.x, y = samples_[i].y - roi_.y;
-      float sum[kChannels] = {};
+    // Columns, one sample row at a time (samples come in row order).
+    column_.resize(static_cast<size_t>(width));
+    for (size_t i = 0; i < n;) {
+      const int y = samples_[i].y - roi_.y;
+      size_t end = i;
+      while (end < n && samples_[end].y - roi_.y == y) ++end;
+      const int x0 = samples_[i].x - roi_.x, x1 = samples_[end - 1].x - roi_.x + 1;
+      float* __restrict sum = column_.data();
+      std::fill(sum + x0, sum + x1, 0.0f);
       for (int k = -r; k <= r; ++k) {
-        const float w = taps[k + kBlurRadius];
-        const float* in = &rows_[(static_cast<size_t>(y + k) * roi_.width + x) * kChannels];
-        for (int c = 0; c < kChannels; ++c) sum[c] += w * in[c];
+        const float w = tap[k];
+        const float* in = &rows_[static_cast<size_t>(y + k) * width];
+        for (int x = x0; x < x1; ++x) sum[x] += w * in[x];
       }
-      cover[i] = sum[0];
-      std::copy(sum + 1, sum + 9, jac->begin() + static_cast<long>(i) * 8);
+      for (; i < end; ++i) cover[i] = sum[samples_[i].x - roi_.x];
+    }
+    if (!jac) return;
+    slope_rows_.assign(static_cast<size_t>(roi_.area()) * kSlopes, 0.0f);
+    for (const int at : boundary_) {
+      // A local copy: the compiler cannot otherwise rule out that `out` overlaps it, and does not
+      // vectorise.
+      alignas(32) float in[kSlopes];
+      std::copy(&slopes_[static_cast<size_t>(at) * kSlopes], &slopes_[static_cast<size_t>(at) * kSlopes] + kSlopes, in);
+      const int x = at % width;
+      for (int k = std::max(-r, -x); k <= std::min(r, width - 1 - x); ++k) {
+        const float w = tap[k];
+        float* out = &slope_rows_[static_cast<size_t>(at + k) * kSlopes];
+        for (int c = 0; c < kSlopes; ++c) out[c] += w * in[c];
+      }
+    }
+    jac->resize(n * kSlopes);
+    for (size_t i = 0; i < n; ++i) {
+      const int x = samples_[i].x - roi_.x, y = samples_[i].y - roi_.y;
+      alignas(32) float sum[kSlopes] = {};
+      for (int k = -r; k <= r; ++k) {
+        const float w = tap[k];
+        const float* in = &slope_rows_[(static_cast<size_t>(y + k) * width + x) * kSlopes];
+        for (int c = 0; c < kSlopes; ++c) sum[c] += w * in[c];
+      }
+      std::copy(sum, sum + kSlopes, jac->begin() + static_cast<long>(i) * kSlopes);
     }
   }
 
@@ -382,6 +389,22 @@ class PatternFit {
     double shoelace = 0.0;
     for (int i = 0; i < 4; ++i) shoelace += Cross(q[i], q[(i + 1) % 4]);
     const double s = shoelace >= 0 ? 1.0 : -1.0;
+    // Each edge's side function s * Cross(d, p - q[e]) (>= 0 inside) is linear in p: at + per_x x +
+    // per_y y; over a pixel square from its corner (x, y) it ranges from its value there plus `lowest`
+    // to that plus `highest`.
+    struct Side {
+      double at, per_x, per_y, lowest, highest;
+    };
+    std::array<Side, 4> sides;
+    for (int e = 0; e < 4; ++e) {
+      const Vec2 d = q[(e + 1) % 4] - q[e];
+      Side& side = sides[e];
+      side.per_x = -s * d.y;
+      side.per_y = s * d.x;
+      side.at = -(side.per_x * q[e].x + side.per_y * q[e].y);
+      side.lowest = std::min(0.0, side.per_x) + std::min(0.0, side.per_y);
+      side.highest = std::max(0.0, side.per_x) + std::max(0.0, side.per_y);
+    }
     double qy0 = q[0].y, qy1 = q[0].y;
     for (const Vec2& p : q) {
       qy0 = std::min(qy0, p.y);
@@ -421,9 +444,10 @@ class PatternFit {
         inner_b = static_cast<int>(std::floor(std::min(top1, bottom1) - 0.5));
       }
       for (int x = xa; x <= xb; ++x) {
-        float* out = &cover_[(static_cast<size_t>(y - roi_.y) * roi_.width + (x - roi_.x)) * kChannels];
+        const int at = (y - roi_.y) * roi_.width + (x - roi_.x);
+        float& covered = coverage_[static_cast<size_t>(at)];
         if (x >= inner_a && x <= inner_b) {
-          out[0] += 1.0f;
+          covered += 1.0f;
           continue;
         }
         const double px = x - 0.5, py = y - 0.5;
@@ -431,22 +455,25 @@ class PatternFit {
         unsigned crossing = 0;
         bool outside = false;
         for (int e = 0; e < 4 && !outside; ++e) {
-          const Vec2 d = q[(e + 1) % 4] - q[e];
-          int in = 0;
-          for (int c = 0; c < 4; ++c) {
-            const Vec2 corner(px + (c == 1 || c == 2), py + (c >= 2));
-            in += s * Cross(d, corner - q[e]) >= 0;
-          }
-          if (in != 4) crossing |= 1u << e;
-          outside = in == 0;
+          const double at_corner = sides[e].at + sides[e].per_x * px + sides[e].per_y * py;
+          if (at_corner + sides[e].lowest < 0) crossing |= 1u << e;
+          outside = at_corner + sides[e].highest < 0;
         }
         if (outside) continue;
         if (!crossing) {
-          out[0] += 1.0f;
+          covered += 1.0f;
           continue;
         }
-        out[0] += static_cast<float>(ClippedArea(q, s, px, py, crossing));
+        covered += static_cast<float>(ClippedArea(q, s, px, py, crossing));
+        if (!on_boundary_[static_cast<size_t>(at)]) {
+          on_boundary_[static_cast<size_t>(at)] = 1;
+          boundary_.push_back(at);
+          std::fill_n(&slopes_[static_cast<size_t>(at) * kSlopes], kSlopes, 0.0f);
+        }
+        float* out = &slopes_[static_cast<size_t>(at) * kSlopes];
         for (int e = 0; e < 4; ++e) {
+          // An edge with the whole pixel on its inner side does not pass through it.
+          if (!(crossing & (1u << e))) continue;
           const Vec2 &a = q[e], &b = q[(e + 1) % 4];
           double t0, t1;
           if (!SegmentInSquare(a, b, px, py, t0, t1)) continue;
@@ -454,11 +481,11 @@ class PatternFit {
           // Outward unit normal times edge length: (dy, -dx) for a positively oriented quad.
           const Vec2 nl(s * d.y, -s * d.x);
           const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
-          const double* ja = &vertex_jac_[ids[e] * 16];
-          const double* jb = &vertex_jac_[ids[(e + 1) % 4] * 16];
-          for (int p = 0; p < 8; ++p) {
-            out[1 + p] += static_cast<float>(wa * (nl.x * ja[p] + nl.y * ja[8 + p]) + wb * (nl.x * jb[p] + nl.y * jb[8 + p]));
-          }
+          const float ax = static_cast<float>(wa * nl.x), ay = static_cast<float>(wa * nl.y);
+          const float bx = static_cast<float>(wb * nl.x), by = static_cast<float>(wb * nl.y);
+          const float* ja = &vertex_jac_[ids[e] * 16];
+          const float* jb = &vertex_jac_[ids[(e + 1) % 4] * 16];
+          for (int p = 0; p < kSlopes; ++p) out[p] += ax * ja[p] + ay * ja[8 + p] + bx * jb[p] + by * jb[8 + p];
         }
       }
     }
@@ -477,8 +504,10 @@ class PatternFit {
   struct Scratch {
     std::vector<Sample> samples;
     std::vector<Vec2> vertices, plus, minus;
-    std::vector<double> vertex_jac;
-    std::vector<float> cover, rows;
+    std::vector<float> vertex_jac;  // per grid vertex: d x / d corners (8), d y / d corners (8)
+    std::vector<float> coverage, slopes, rows, slope_rows, padded, column;
+    std::vector<uchar> on_boundary;
+    std::vector<int> boundary;
   };
   static Scratch& ThreadScratch() {
     thread_local Scratch scratch;
@@ -487,8 +516,14 @@ class PatternFit {
   Scratch& scratch_ = ThreadScratch();
   std::vector<Sample>& samples_ = scratch_.samples;
   std::vector<Vec2>&vertices_ = scratch_.vertices, &plus_ = scratch_.plus, &minus_ = scratch_.minus;
-  std::vector<double>& vertex_jac_ = scratch_.vertex_jac;
-  std::vector<float>&cover_ = scratch_.cover, &rows_ = scratch_.rows;
+  std::vector<float>& vertex_jac_ = scratch_.vertex_jac;
+  // The coverage plane, and the corner derivatives of the pixels in `boundary_` (the only non-zero
+  // ones; `on_boundary_` marks them).
+  std::vector<float>&coverage_ = scratch_.coverage, &slopes_ = scratch_.slopes;
+  std::vector<uchar>& on_boundary_ = scratch_.on_boundary;
+  std::vector<int>& boundary_ = scratch_.boundary;
+  std::vector<float>&rows_ = scratch_.rows, &slope_rows_ = scratch_.slope_rows, &padded_ = scratch_.padded,
+                    &column_ = scratch_.column;
 };
 
 // Sum of a[k] * b[k] in float with eight running sums, so the loop vectorises (a single running sum
