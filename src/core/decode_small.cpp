@@ -142,7 +142,7 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
         const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
         for (int i = 0; i < kCoverageSamples; ++i) {
           const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
-          const int cx = static_cast<int>(std::floor(s.x)), cy = static_cast<int>(std::floor(s.y));
+          const int cx = FloorInt(s.x), cy = FloorInt(s.y);
           const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
           if (weight[k] == 0.0) touched.push_back(k);
           weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);

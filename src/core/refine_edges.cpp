@@ -100,8 +100,10 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
       } else if (profile[i] >= level && profile[i + 1] < level) {
         ++crossings;
       }
-      area += 0.5 * step * ((profile[i] - dark) + (profile[i + 1] - dark)) / (light - dark);
+      area += profile[i] + profile[i + 1];
     }
+    // Trapezoid rule over the profile normalised to [0, 1].
+    area = 0.5 * step * (area - 2.0 * dark * (profile.size() - 1)) / (light - dark);
     if (!std::isfinite(crossing)) continue;
     const double offset = use_area && crossings == 1 ? half * step - area : crossing;
     if (std::abs(offset) < half * step) points.push_back(base + outward * offset);
