@@ -454,9 +454,13 @@ class PatternFit {
         // Inside every edge with all four pixel corners: fully covered, no boundary to move.
         unsigned crossing = 0;
         bool outside = false;
+        double deepest = 0.0;  // the lowest side value over the pixel, of the last crossing edge
         for (int e = 0; e < 4 && !outside; ++e) {
           const double at_corner = sides[e].at + sides[e].per_x * px + sides[e].per_y * py;
-          if (at_corner + sides[e].lowest < 0) crossing |= 1u << e;
+          if (at_corner + sides[e].lowest < 0) {
+            crossing |= 1u << e;
+            deepest = at_corner + sides[e].lowest;
+          }
           outside = at_corner + sides[e].highest < 0;
         }
         if (outside) continue;
@@ -464,7 +468,14 @@ class PatternFit {
           covered += 1.0f;
           continue;
         }
-        covered += static_cast<float>(ClippedArea(q, s, px, py, crossing));
+        if (!(crossing & (crossing - 1))) {
+          // One edge crosses the pixel (most boundary pixels): the quad covers what that edge's
+          // half-plane does.
+          const Side& side = sides[__builtin_ctz(crossing)];
+          covered += static_cast<float>(1.0 - internal::BelowLine(-deepest, std::abs(side.per_x), std::abs(side.per_y)));
+        } else {
+          covered += static_cast<float>(ClippedArea(q, s, px, py, crossing));
+        }
         if (!on_boundary_[static_cast<size_t>(at)]) {
           on_boundary_[static_cast<size_t>(at)] = 1;
           boundary_.push_back(at);
@@ -732,6 +743,16 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
 }  // namespace
 
 namespace internal {
+
+double BelowLine(double t, double a, double b) {
+  if (a > b) std::swap(a, b);
+  if (t >= a + b) return 1.0;
+  if (a <= 1e-12 * b) return std::min(t / b, 1.0);  // the line runs along x or y
+  if (t <= a) return t * t / (2.0 * a * b);          // a corner triangle
+  if (t <= b) return (2.0 * t - a) / (2.0 * b);      // a trapezoid
+  const double rest = a + b - t;                     // all but the opposite corner's triangle
+  return 1.0 - rest * rest / (2.0 * a * b);
+}
 
 size_t PatternFitEvaluations() { return evaluations; }
 

@@ -13,6 +13,11 @@ namespace arucotag::internal {
 /// cells of 4 px or more, and at most about 6000 for markers over about 95 px (a sparser lattice).
 size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv::Point2f, 4>& corners);
 
+/// Area of {a u + b v < t} within the unit square u, v in [0, 1], for a, b >= 0 (not both 0) and
+/// t >= 0: the part of a pixel below a line whose value rises by a along x and by b along y from the
+/// pixel's lowest corner, where it is -t. The exact coverage of a pixel that one marker edge crosses.
+double BelowLine(double t, double a, double b);
+
 /// How many times the fit has evaluated its cost (and normal equations) on this thread so far: what
 /// fits cost, counted rather than timed.
 size_t PatternFitEvaluations();
