@@ -84,7 +84,8 @@ inline double SampleBilinear(const cv::Mat& grey, double x, double y) {
   const double a = x - ix, b = y - iy;
   const uchar* r0 = grey.ptr<uchar>(iy) + ix;
   const uchar* r1 = grey.ptr<uchar>(iy + 1) + ix;
-  return (1.0 - b) * ((1.0 - a) * r0[0] + a * r0[1]) + b * ((1.0 - a) * r1[0] + a * r1[1]);
+  const double top = r0[0] + a * (r0[1] - r0[0]), bottom = r1[0] + a * (r1[1] - r1[0]);
+  return top + b * (bottom - top);
 }
 
 }  // namespace arucotag::internal
