@@ -67,8 +67,6 @@ SmallMarker RenderSmallMarker(int id, double blur, double noise) {
   return out;
 }
 
-// From corners 0.7 px off in different directions, the fit lands within a few hundredths, sharp or
-// blurred.
 // The closed-form pixel area under a line against a 2000 x 2000 midpoint grid, over slopes from
 // axis-parallel to diagonal and offsets from a corner to the whole pixel.
 TEST(PatternFit, AreaBelowALineMatchesIntegration) {
@@ -91,6 +89,8 @@ TEST(PatternFit, AreaBelowALineMatchesIntegration) {
   std::printf("closed-form area against integration: worst difference %.2g\n", worst);
 }
 
+// From corners 0.7 px off in different directions, the fit lands within a few hundredths, sharp or
+// blurred.
 TEST(PatternFit, ConvergesFromAPoorStart) {
   const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
   for (double blur : {0.0, 0.7, 1.2}) {
