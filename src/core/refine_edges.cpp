@@ -67,17 +67,15 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const double step = reach < 2.0 ? 0.25 : 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
 
-  // Fixed-size buffers: this runs 8 times a pass on every marker, and heap allocations were a
-  // measurable share of it.
-  // 2 half + 1 samples: half = ceil(reach / step) is at most 8 (reach under 2 px at 0.25 px steps;
-  // at most 3 px at 0.5 px steps otherwise).
+  // Fixed-size buffers (this runs 8 times a pass on every marker; heap allocations were a measurable
+  // share of it). A profile has 2 half + 1 samples, and half = ceil(reach / step) is at most 8: reach
+  // under 2 px at 0.25 px steps, at most 3 px at 0.5 px steps.
   constexpr int kMaxProfile = 17;
-  std::array<cv::Point2d, kProfilesPerEdge> points;
-  int found = 0;
-  std::array<double, kMaxProfile> storage;
   const int samples = 2 * half + 1;
   CV_DbgAssert(samples <= kMaxProfile);
-  double* profile = storage.data();
+  std::array<double, kMaxProfile> profile;
+  std::array<cv::Point2d, kProfilesPerEdge> points;
+  int found = 0;
   for (int k = 0; k < count; ++k) {
     const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
     const cv::Point2d a = base - outward * (half * step), b = base + outward * (half * step);
