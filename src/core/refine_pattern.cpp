@@ -18,9 +18,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <iterator>
 #include <limits>
 #include <numeric>
+#include <type_traits>
 #include <vector>
 
 // The fit's per-pixel loops (blur, normal equations) are float arithmetic the compiler vectorises:
@@ -30,6 +32,12 @@
 #define ARUCOTAG_VECTOR_CLONES __attribute__((target_clones("arch=haswell", "default")))
 #else
 #define ARUCOTAG_VECTOR_CLONES
+#endif
+// Helpers of those loops are inlined into them, so that each clone has its own build of them.
+#if defined(__GNUC__)
+#define ARUCOTAG_INLINE __attribute__((always_inline)) inline
+#else
+#define ARUCOTAG_INLINE inline
 #endif
 
 namespace arucotag {
@@ -195,10 +203,31 @@ Kernel BlurKernel(double variance) {
   return kernel;
 }
 
+// out[x] = sum over k in [-R, R] of tap[k] * in[x + k * stride], x in [0, count): each output is
+// summed in a register, the taps in order (the same sum as adding tap by tap into `out`, in a
+// quarter of the loads and stores). Inlined into Blurred, so it is built for each of its clones.
+template <int R>
+ARUCOTAG_INLINE void Convolve(const float* __restrict in, ptrdiff_t stride, const float* __restrict tap,
+                              float* __restrict out, int count) {
+  for (int x = 0; x < count; ++x) {
+    float sum = 0.0f;
+    for (int k = -R; k <= R; ++k) sum += tap[k] * in[x + k * stride];
+    out[x] = sum;
+  }
+}
+
+// A pixel's eight corner derivatives as one value: one AVX register, two SSE ones (GCC's and
+// Clang's vector extension; loads and stores through memcpy, which makes no alignment claim).
+typedef float SlopeVector __attribute__((vector_size(8 * sizeof(float))));
+// (By reference: a vector returned by value would make the build without AVX warn about the ABI.)
+ARUCOTAG_INLINE void LoadSlopes(const float* p, SlopeVector& v) { std::memcpy(&v, p, sizeof v); }
+ARUCOTAG_INLINE void StoreSlopes(float* p, const SlopeVector& v) { std::memcpy(p, &v, sizeof v); }
+
 class PatternFit {
  public:
-  // Corner derivatives per pixel (8 floats: one AVX vector, two SSE ones).
+  // Corner derivatives per pixel (8 floats: one SlopeVector).
   static constexpr int kSlopes = 8;
+  static_assert(sizeof(SlopeVector) == kSlopes * sizeof(float), "one vector per pixel");
 
   PatternFit(const cv::Mat& grey, const cv::Mat& black, int cells, const std::array<Vec2, 4>& corners)
       : grey_(grey), black_(black), cells_(cells) {
@@ -274,65 +303,66 @@ class PatternFit {
     const int width = roi_.width;
     const size_t n = samples_.size();
     cover.resize(n);
-    // Rows of the coverage plane, each through a copy padded with r zeros on both sides.
     rows_.resize(static_cast<size_t>(roi_.area()));
     padded_.assign(static_cast<size_t>(width + 2 * kBlurRadius), 0.0f);
-    for (int y = 0; y < roi_.height; ++y) {
-      const float* in = &coverage_[static_cast<size_t>(y) * width];
-      float* __restrict out = &rows_[static_cast<size_t>(y) * width];
-      float* __restrict pad = padded_.data() + kBlurRadius;
-      std::copy(in, in + width, pad);
-      std::fill(out, out + width, 0.0f);
-      for (int k = -r; k <= r; ++k) {
-        const float w = tap[k];
-        const float* shifted = pad + k;
-        for (int x = 0; x < width; ++x) out[x] += w * shifted[x];
-      }
-    }
-    // Columns, one sample row at a time (samples come in row order).
     column_.resize(static_cast<size_t>(width));
-    for (size_t i = 0; i < n;) {
-      const int y = samples_[i].y - roi_.y;
-      size_t end = i;
-      while (end < n && samples_[end].y - roi_.y == y) ++end;
-      const int x0 = samples_[i].x - roi_.x, x1 = samples_[end - 1].x - roi_.x + 1;
-      float* __restrict sum = column_.data();
-      std::fill(sum + x0, sum + x1, 0.0f);
-      for (int k = -r; k <= r; ++k) {
-        const float w = tap[k];
-        const float* in = &rows_[static_cast<size_t>(y + k) * width];
-        for (int x = x0; x < x1; ++x) sum[x] += w * in[x];
-      }
-      for (; i < end; ++i) cover[i] = sum[samples_[i].x - roi_.x];
+    static_assert(kBlurRadius == 5, "one case per kernel radius");
+    switch (r) {  // the taps unrolled
+      case 1: BlurCoverage<1>(tap, cover); break;
+      case 2: BlurCoverage<2>(tap, cover); break;
+      case 3: BlurCoverage<3>(tap, cover); break;
+      case 4: BlurCoverage<4>(tap, cover); break;
+      default: BlurCoverage<kBlurRadius>(tap, cover); break;
     }
     if (!jac) return;
     slope_rows_.assign(static_cast<size_t>(roi_.area()) * kSlopes, 0.0f);
     for (const int at : boundary_) {
-      // A local copy: the compiler cannot otherwise rule out that `out` overlaps it, and does not
-      // vectorise.
-      alignas(32) float in[kSlopes];
-      std::copy(&slopes_[static_cast<size_t>(at) * kSlopes], &slopes_[static_cast<size_t>(at) * kSlopes] + kSlopes, in);
+      SlopeVector in, out;
+      LoadSlopes(&slopes_[static_cast<size_t>(at) * kSlopes], in);
       const int x = at % width;
       for (int k = std::max(-r, -x); k <= std::min(r, width - 1 - x); ++k) {
-        const float w = tap[k];
-        float* out = &slope_rows_[static_cast<size_t>(at + k) * kSlopes];
-        for (int c = 0; c < kSlopes; ++c) out[c] += w * in[c];
+        float* row = &slope_rows_[static_cast<size_t>(at + k) * kSlopes];
+        LoadSlopes(row, out);
+        StoreSlopes(row, out + tap[k] * in);
       }
     }
     jac->resize(n * kSlopes);
     for (size_t i = 0; i < n; ++i) {
       const int x = samples_[i].x - roi_.x, y = samples_[i].y - roi_.y;
-      alignas(32) float sum[kSlopes] = {};
+      SlopeVector sum = {}, in;
       for (int k = -r; k <= r; ++k) {
-        const float w = tap[k];
-        const float* in = &slope_rows_[(static_cast<size_t>(y + k) * width + x) * kSlopes];
-        for (int c = 0; c < kSlopes; ++c) sum[c] += w * in[c];
+        LoadSlopes(&slope_rows_[(static_cast<size_t>(y + k) * width + x) * kSlopes], in);
+        sum += tap[k] * in;
       }
-      std::copy(sum, sum + kSlopes, jac->begin() + static_cast<long>(i) * kSlopes);
+      StoreSlopes(&(*jac)[i * kSlopes], sum);
     }
   }
 
  private:
+  // Blurred's coverage passes for a kernel of radius R: rows over the whole plane, each through a
+  // copy padded with zeros, then columns one sample row at a time (samples come in row order).
+  template <int R>
+  ARUCOTAG_INLINE void BlurCoverage(const float* tap, std::vector<float>& cover) {
+    static_assert(R >= 1 && R <= kBlurRadius, "a kernel radius");
+    const int width = roi_.width;
+    const size_t n = samples_.size();
+    float* pad = padded_.data() + kBlurRadius;
+    for (int y = 0; y < roi_.height; ++y) {
+      const float* in = &coverage_[static_cast<size_t>(y) * width];
+      std::copy(in, in + width, pad);
+      Convolve<R>(pad, 1, tap, &rows_[static_cast<size_t>(y) * width], width);
+    }
+    float* sum = column_.data();
+    for (size_t i = 0; i < n;) {
+      const int y = samples_[i].y - roi_.y;
+      size_t end = i;
+      while (end < n && samples_[end].y - roi_.y == y) ++end;
+      const int x0 = samples_[i].x - roi_.x, x1 = samples_[end - 1].x - roi_.x + 1;
+      Convolve<R>(&rows_[static_cast<size_t>(y) * width + x0], width, tap, sum + x0, x1 - x0);
+      for (; i < end; ++i) cover[i] = sum[samples_[i].x - roi_.x];
+    }
+  }
+
   // Samples: pixels whose centre lies on the marker or within half a cell outside it (the quiet zone
   // every printed marker needs), fully inside the image. Coverage is computed over their bounding box
   // widened by the blur kernel's radius.
