@@ -524,9 +524,13 @@ class PatternFit {
           const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
           const float ax = static_cast<float>(wa * nl.x), ay = static_cast<float>(wa * nl.y);
           const float bx = static_cast<float>(wb * nl.x), by = static_cast<float>(wb * nl.y);
-          const float* ja = &vertex_jac_[ids[e] * 16];
-          const float* jb = &vertex_jac_[ids[(e + 1) % 4] * 16];
-          for (int p = 0; p < kSlopes; ++p) out[p] += ax * ja[p] + ay * ja[8 + p] + bx * jb[p] + by * jb[8 + p];
+          SlopeVector ja_x, ja_y, jb_x, jb_y, sum;
+          LoadSlopes(&vertex_jac_[ids[e] * 16], ja_x);
+          LoadSlopes(&vertex_jac_[ids[e] * 16 + 8], ja_y);
+          LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16], jb_x);
+          LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16 + 8], jb_y);
+          LoadSlopes(out, sum);
+          StoreSlopes(out, sum + (ax * ja_x + ay * ja_y + bx * jb_x + by * jb_y));
         }
       }
     }
