@@ -50,7 +50,7 @@ int MaxDim(const cv::Size& s) { return std::max(s.width, s.height); }
 // 16-bit, row by row, so the compiler vectorises every loop; OpenCV's version compares through a
 // per-pixel table look-up.
 template <int W>
-void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
+ARUCOTAG_INLINE void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
   constexpr int r = W / 2;
   constexpr int area = W * W;
   const int w = src.cols, h = src.rows;
@@ -89,13 +89,18 @@ void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
   }
 }
 
+// The windows the search levels use, each built for AVX2 too (ARUCOTAG_VECTOR_CLONES).
+ARUCOTAG_VECTOR_CLONES void BoxThreshold5(const cv::Mat& src, int delta, cv::Mat& out) { BoxThreshold<5>(src, delta, out); }
+ARUCOTAG_VECTOR_CLONES void BoxThreshold7(const cv::Mat& src, int delta, cv::Mat& out) { BoxThreshold<7>(src, delta, out); }
+ARUCOTAG_VECTOR_CLONES void BoxThreshold11(const cv::Mat& src, int delta, cv::Mat& out) { BoxThreshold<11>(src, delta, out); }
+
 void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   const int delta = cvFloor(constant);
   // 16-bit headroom: (255 + delta) * 2 * W^2 must fit.
   const bool fits = delta >= 0 && (255 + delta) * 2 * window * window <= 65535;
-  if (fits && window == 5) return BoxThreshold<5>(src, delta, out);
-  if (fits && window == 7) return BoxThreshold<7>(src, delta, out);
-  if (fits && window == 11) return BoxThreshold<11>(src, delta, out);
+  if (fits && window == 5) return BoxThreshold5(src, delta, out);
+  if (fits && window == 7) return BoxThreshold7(src, delta, out);
+  if (fits && window == 11) return BoxThreshold11(src, delta, out);
   cv::Mat binary;
   cv::adaptiveThreshold(src, binary, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, constant);
   cv::copyMakeBorder(binary, out, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));

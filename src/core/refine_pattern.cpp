@@ -25,21 +25,6 @@
 #include <type_traits>
 #include <vector>
 
-// The fit's per-pixel loops (blur, normal equations) are float arithmetic the compiler vectorises:
-// on x86-64 GCC also builds them for AVX2 with FMA (8 floats a step, not SSE2's 4) and picks the
-// version the CPU supports when the library loads. Results agree to float rounding.
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-#define ARUCOTAG_VECTOR_CLONES __attribute__((target_clones("arch=haswell", "default")))
-#else
-#define ARUCOTAG_VECTOR_CLONES
-#endif
-// Helpers of those loops are inlined into them, so that each clone has its own build of them.
-#if defined(__GNUC__)
-#define ARUCOTAG_INLINE __attribute__((always_inline)) inline
-#else
-#define ARUCOTAG_INLINE inline
-#endif
-
 namespace arucotag {
 
 namespace {
