@@ -172,7 +172,9 @@ TEST(SmallMarkers, SecondChanceCorrectsTwoCellsOfTag36h11AndNoneOfFourByFour) {
     internal::SmallMarker read;
     const bool found = internal::DecodeSmall(grey, corners, *tag36h11, 1, false, read);
     EXPECT_EQ(found, wrong <= 2) << wrong << " wrong cells";
-    if (found) EXPECT_EQ(read.id, 100) << wrong << " wrong cells";
+    if (found) {
+      EXPECT_EQ(read.id, 100) << wrong << " wrong cells";
+    }
   }
   for (size_t wrong = 0; wrong <= 1; ++wrong) {
     std::array<cv::Point2f, 4> corners;
