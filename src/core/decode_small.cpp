@@ -104,6 +104,18 @@ float ShortestSide(const std::array<cv::Point2f, 4>& q) {
 // least squares over the pixels around it: each pixel is modelled as the area-weighted mean of the
 // cells (and the quiet zone) it covers. At 1.25 px per cell no pixel sees a cell alone, and a
 // sample at the cell's centre reads half its neighbours; the pixel-area model undoes that mixing.
+// The cell index (cy * n + cx, or n * n outside the n x n square) shared by four points in cell
+// coordinates, when each of them is in the same cell or all are beyond the same edge of the square
+// (each a convex region); -1 otherwise.
+int WholeCell(const cv::Point2d& a, const cv::Point2d& b, const cv::Point2d& c, const cv::Point2d& d, int n) {
+  const double lo_x = std::min({a.x, b.x, c.x, d.x}), hi_x = std::max({a.x, b.x, c.x, d.x});
+  const double lo_y = std::min({a.y, b.y, c.y, d.y}), hi_y = std::max({a.y, b.y, c.y, d.y});
+  if (hi_x < 0.0 || hi_y < 0.0 || lo_x >= n || lo_y >= n) return n * n;
+  const int cx = FloorInt(lo_x), cy = FloorInt(lo_y);
+  if (cx < 0 || cy < 0 || cx >= n || cy >= n || FloorInt(hi_x) != cx || FloorInt(hi_y) != cy) return -1;
+  return cy * n + cx;
+}
+
 bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector<double>& cells, double& quiet) {
   const int unknowns = n * n + 1;  // the cells, then the quiet zone
   const cv::Matx33d to_unit = h.inv();
@@ -137,7 +149,15 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       touched.clear();
       const cv::Point2d* g = &grid[static_cast<size_t>(y - box.y) * gw + (x - box.x)];
       const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
-      for (int j = 0; j < kCoverageSamples; ++j) {
+      // The samples are convex combinations of the pixel's corners: when all four corners fall in
+      // one cell, or on the outer side of one of the square's edges, so do all the samples, and the
+      // pixel is that cell's (or the quiet zone's) whole (16 sixteenths add up to exactly 1).
+      const int whole = WholeCell(g[0], g[1], g[gw], g[gw + 1], n);
+      if (whole >= 0) {
+        touched.push_back(whole);
+        weight[whole] = 1.0;
+      }
+      for (int j = 0; j < (whole >= 0 ? 0 : kCoverageSamples); ++j) {
         const double fy = (j + 0.5) / kCoverageSamples;
         const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
         for (int i = 0; i < kCoverageSamples; ++i) {
