@@ -100,10 +100,6 @@ float ShortestSide(const std::array<cv::Point2f, 4>& q) {
   return s;
 }
 
-// The grey level of each of the n x n cells of the black square h maps the unit square onto, by
-// least squares over the pixels around it: each pixel is modelled as the area-weighted mean of the
-// cells (and the quiet zone) it covers. At 1.25 px per cell no pixel sees a cell alone, and a
-// sample at the cell's centre reads half its neighbours; the pixel-area model undoes that mixing.
 // The cell index (cy * n + cx, or n * n outside the n x n square) shared by four points in cell
 // coordinates, when each of them is in the same cell or all are beyond the same edge of the square
 // (each a convex region); -1 otherwise.
@@ -116,6 +112,10 @@ int WholeCell(const cv::Point2d& a, const cv::Point2d& b, const cv::Point2d& c, 
   return cy * n + cx;
 }
 
+// The grey level of each of the n x n cells of the black square h maps the unit square onto, by
+// least squares over the pixels around it: each pixel is modelled as the area-weighted mean of the
+// cells (and the quiet zone) it covers. At 1.25 px per cell no pixel sees a cell alone, and a
+// sample at the cell's centre reads half its neighbours; the pixel-area model undoes that mixing.
 bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector<double>& cells, double& quiet) {
   const int unknowns = n * n + 1;  // the cells, then the quiet zone
   const cv::Matx33d to_unit = h.inv();
