@@ -148,7 +148,6 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       if (cu < -margin || cv_ < -margin || cu > 1.0 + margin || cv_ > 1.0 + margin) continue;
       touched.clear();
       const cv::Point2d* g = &grid[static_cast<size_t>(y - box.y) * gw + (x - box.x)];
-      const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
       // The samples are convex combinations of the pixel's corners: when all four corners fall in
       // one cell, or on the outer side of one of the square's edges, so do all the samples, and the
       // pixel is that cell's (or the quiet zone's) whole (16 sixteenths add up to exactly 1).
@@ -156,16 +155,18 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       if (whole >= 0) {
         touched.push_back(whole);
         weight[whole] = 1.0;
-      }
-      for (int j = 0; j < (whole >= 0 ? 0 : kCoverageSamples); ++j) {
-        const double fy = (j + 0.5) / kCoverageSamples;
-        const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
-        for (int i = 0; i < kCoverageSamples; ++i) {
-          const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
-          const int cx = FloorInt(s.x), cy = FloorInt(s.y);
-          const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
-          if (weight[k] == 0.0) touched.push_back(k);
-          weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
+      } else {
+        const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
+        for (int j = 0; j < kCoverageSamples; ++j) {
+          const double fy = (j + 0.5) / kCoverageSamples;
+          const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
+          for (int i = 0; i < kCoverageSamples; ++i) {
+            const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
+            const int cx = FloorInt(s.x), cy = FloorInt(s.y);
+            const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
+            if (weight[k] == 0.0) touched.push_back(k);
+            weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
+          }
         }
       }
       const double value = grey.at<uchar>(y, x);

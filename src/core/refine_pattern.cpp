@@ -22,7 +22,6 @@
 #include <iterator>
 #include <limits>
 #include <numeric>
-#include <type_traits>
 #include <vector>
 
 namespace arucotag {
