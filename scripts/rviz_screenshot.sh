@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Replays a recording with rviz (config/arucotag.rviz) under a virtual X server and saves a
 # screenshot of the whole rviz window once playback is over (rviz keeps the last frame: the clock
-# stops with the bag). Exits non-zero when rviz dies or logs an error, or the screenshot fails.
+# stops with the bag). rviz starts first, alone (launch/rviz.launch), and the replay follows once
+# its window is up. Exits non-zero when rviz dies in four starts in a row or in two replays, when
+# rviz or the replay logs an error, or when the screenshot fails. Logs: <out>.log (the replay),
+# <out>_rviz.log (rviz), <out>_roscore.log.
 #
 #   scripts/rviz_screenshot.sh [--bag FILE] [--out PNG] [--start S] [--duration S] [--bundles YAML]
 #
@@ -57,11 +60,57 @@ trap cleanup EXIT
 roscore -p "${PORT}" > "${LOG%.log}_roscore.log" 2>&1 &
 pids+=($!)
 for _ in $(seq 100); do rosnode list > /dev/null 2>&1 && break; sleep 0.2; done
-# rviz needs a few seconds to open under software GL: the player starts paused and plays once
-# rviz's overlay display has subscribed. rviz 1.14 under Xvfb rarely dies on its own (a heap error or
-# a segfault inside rviz, seen while it starts and just after it subscribes): when rviz dies during
-# a replay, the replay runs once more, and that is reported on stderr.
-died() { grep -q 'rviz-[0-9]*\] process has died' "${LOG}"; }
+# replay.launch sets this too; rviz, started first, must read it when it starts.
+rosparam set use_sim_time true
+# rviz 1.14 under Xvfb sometimes dies while it starts, with a heap error or a segfault inside rviz,
+# more often while the machine is busy: 2 of 7 starts beside the sanitizer build's detector as it
+# started, 0 of 35 alone. So rviz starts first, alone, up to four times; it is up once it has
+# subscribed to the overlay and is still running 3 s later (its own log lines are no sign: rviz
+# buffers its stdout when it is not a terminal). A death after that replays once more. Every death
+# is reported on stderr, and each dead rviz's log is kept beside the screenshot.
+RVIZ_LOG="${LOG%.log}_rviz.log"
+died() { grep -q 'rviz-[0-9]*\] process has died' "${RVIZ_LOG}"; }
+rviz_launch=""
+stop_rviz() {
+  [ -n "${rviz_launch}" ] || return 0
+  kill -INT "${rviz_launch}" 2>/dev/null || true
+  for _ in $(seq 50); do kill -0 "${rviz_launch}" 2>/dev/null || break; sleep 0.2; done
+  kill -KILL "${rviz_launch}" 2>/dev/null || true
+  wait "${rviz_launch}" 2>/dev/null || true
+  rviz_launch=""
+}
+start_rviz() {  # 0 once rviz is up; 1 when it died first, 2 when it never subscribed
+  PYTHONUNBUFFERED=1 roslaunch arucotag rviz.launch > "${RVIZ_LOG}" 2>&1 &
+  rviz_launch=$!
+  pids=("${rviz_launch}" "${pids[@]}")
+  for _ in $(seq 120); do
+    if rostopic info /zed/overlay 2>/dev/null | sed -n '/^Subscribers:/,$p' | grep -q '/rviz'; then
+      sleep 3
+      died && return 1
+      return 0
+    fi
+    died && return 1
+    sleep 0.5
+  done
+  echo "rviz_screenshot: rviz did not subscribe to /zed/overlay in 60 s, see ${RVIZ_LOG}" >&2
+  return 2
+}
+starts=0
+up_rviz() {  # rviz running, after at most four starts
+  local status
+  for _ in 1 2 3 4; do
+    starts=$((starts + 1))
+    status=0
+    start_rviz || status=$?
+    [ ${status} -eq 0 ] && return 0
+    stop_rviz
+    [ ${status} -eq 1 ] || return 1
+    mv "${RVIZ_LOG}" "${RVIZ_LOG%.log}_start${starts}.log"
+    echo "rviz_screenshot: rviz died while it started (log kept as ${RVIZ_LOG%.log}_start${starts}.log)" >&2
+  done
+  echo "rviz_screenshot: rviz died in four starts in a row" >&2
+  return 1
+}
 # The player ending is not the detector ending: it can still be working through the images queued
 # while rate control let the player run ahead (seconds under the sanitizer, where a CI run drew an
 # empty overlay panel). Waits until the overlay topic has been quiet for 2 s (at most 60 s) and prints
@@ -91,20 +140,23 @@ sub.unregister()
 print(last[0])
 PY
 }
-replay() {  # one replay up to its last frame; 1 when rviz died, 2 on any other failure
+replay() {  # one replay, rviz already up, to its last frame; 1 when rviz died, 2 on any other failure
   # The loops below read roslaunch's log as it runs: Python must not buffer it until exit.
-  PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=true \
+  PYTHONUNBUFFERED=1 roslaunch arucotag replay.launch bag:="${BAG}" start:="${START}" duration:="${DURATION}" rviz:=false \
     bundles:="${BUNDLES}" rate_control:=true quiet:=true paused:=true > "${LOG}" 2>&1 &
   launch=$!
   pids=("${launch}" "${pids[@]}")
-  local subscribed=false
+  local advertised=false
   for _ in $(seq 120); do
-    if rostopic info /zed/overlay 2>/dev/null | grep -q '/rviz'; then subscribed=true; break; fi
+    if rostopic info /zed/overlay 2>/dev/null | sed -n '/^Publishers:/,/^Subscribers:/p' | grep -q 'aruco_detector_manager'; then
+      advertised=true
+      break
+    fi
     died && return 1
     kill -0 "${launch}" 2>/dev/null || { echo "rviz_screenshot: roslaunch exited early, see ${LOG}" >&2; return 2; }
     sleep 0.5
   done
-  [ "${subscribed}" = true ] || { echo "rviz_screenshot: rviz never subscribed, see ${LOG}" >&2; return 2; }
+  [ "${advertised}" = true ] || { echo "rviz_screenshot: the detector never advertised /zed/overlay, see ${LOG}" >&2; return 2; }
   # Registered is not connected: the detector's manager connects to rviz on its own time (slowly in
   # the sanitizer build, whose CI run drew an empty overlay panel), and frames sent before are lost.
   local connected=false
@@ -149,21 +201,26 @@ stop_replay() {
   kill -KILL "${launch}" 2>/dev/null || true
   wait "${launch}" 2>/dev/null || true
 }
+up_rviz || exit 1
 status=0
 replay || status=$?
 if [ ${status} -eq 1 ]; then
   stop_replay
   mv "${LOG}" "${LOG%.log}_try1.log"
-  echo "rviz_screenshot: rviz died during the replay (log kept as ${LOG%.log}_try1.log), replaying once more" >&2
+  mv "${RVIZ_LOG}" "${RVIZ_LOG%.log}_try1.log"
+  echo "rviz_screenshot: rviz died during the replay (logs kept as ${LOG%.log}_try1.log and ${RVIZ_LOG%.log}_try1.log), replaying once more" >&2
+  stop_rviz
+  up_rviz || exit 1
   status=0
   replay || status=$?
-  [ ${status} -ne 1 ] || echo "rviz_screenshot: rviz died again, see ${LOG}" >&2
+  [ ${status} -ne 1 ] || echo "rviz_screenshot: rviz died again, see ${RVIZ_LOG}" >&2
 fi
 [ ${status} -eq 0 ] || exit 1
 xwd -root -silent | /usr/bin/convert xwd:- png:"${OUT}"
-if grep -E '\[ERROR\]|rviz.*(crash|Segmentation)|process has died' "${LOG}" > /dev/null; then
-  echo "rviz_screenshot: errors in ${LOG}:" >&2
-  grep -E '\[ERROR\]|rviz.*(crash|Segmentation)|process has died' "${LOG}" | head -5 >&2
+errors='\[ERROR\]|rviz.*(crash|Segmentation)|process has died'
+if grep -E "${errors}" "${LOG}" "${RVIZ_LOG}" > /dev/null; then
+  echo "rviz_screenshot: errors in ${LOG} or ${RVIZ_LOG}:" >&2
+  grep -E "${errors}" "${LOG}" "${RVIZ_LOG}" | head -5 >&2
   exit 1
 fi
 echo "rviz_screenshot: ${OUT}"

@@ -53,7 +53,9 @@ class RvizScreenshotTest(unittest.TestCase):
                                   "--start", "0", "--duration", "1.5"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  universal_newlines=True, timeout=200)
         print(cls.result.stdout)
-        cls.log = open(out[:-len(".png")] + ".log", errors="replace").read() if os.path.exists(out[:-4] + ".log") else ""
+        # The replay's log and rviz's own (the script starts rviz first, alone).
+        logs = [out[:-len(".png")] + suffix for suffix in (".log", "_rviz.log")]
+        cls.log = "".join(open(log, errors="replace").read() for log in logs if os.path.exists(log))
         cls.image = read_rgb(out) if os.path.exists(out) else None
 
     def test_script_succeeded(self):
