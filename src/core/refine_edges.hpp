@@ -11,9 +11,9 @@ namespace arucotag::internal {
 /// corners (RefineCornersOnEdgesSettled).
 inline constexpr double kEdgeFitSettledPx = 0.05;
 
-/// RefineCornersOnEdges, true when it measured all four corners in its last pass and one more pass
-/// would move none of them by over `settled` px: the fit has reached its fixed point, which does not
-/// depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns.
+/// RefineCornersOnEdges, true when it measured all four corners in its last pass and that pass, or
+/// else one more, moved none of them by over `settled` px: the fit has reached its fixed point, which
+/// does not depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns.
 bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
                                  double settled);
 
