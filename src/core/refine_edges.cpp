@@ -37,6 +37,18 @@ constexpr double kOtherEdgeClearance = 2.5;
 // Markers with a shorter perimeter (px) get a third pass.
 constexpr double kSmallPerimeter = 200.0;
 
+// internal::SampleBilinear where (x, y) is known to lie in [0, cols - 2] x [0, rows - 2], as every
+// profile sample does: truncation is the floor there and no clamp is needed (a fifth fewer
+// instructions in the edge fit). The same arithmetic, so the same values.
+inline double SampleInside(const cv::Mat& grey, double x, double y) {
+  const int ix = static_cast<int>(x), iy = static_cast<int>(y);
+  const double a = x - ix, b = y - iy;
+  const uchar* r0 = grey.ptr<uchar>(iy) + ix;
+  const uchar* r1 = r0 + grey.step[0];
+  const double top = r0[0] + a * (r0[1] - r0[0]), bottom = r1[0] + a * (r1[1] - r1[0]);
+  return top + b * (bottom - top);
+}
+
 struct Line {
   cv::Point2d point, direction;  // direction is unit length
 };
@@ -67,14 +79,10 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const double step = reach < 2.0 ? 0.25 : 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
 
-  // Fixed-size buffers (this runs 8 times a pass on every marker; heap allocations were a measurable
-  // share of it). A profile has 2 half + 1 samples, and half = ceil(reach / step) is at most 8: reach
-  // under 2 px at 0.25 px steps, at most 3 px at 0.5 px steps.
-  constexpr int kMaxProfile = 17;
-  const int samples = 2 * half + 1;
-  CV_DbgAssert(samples <= kMaxProfile);
-  std::array<double, kMaxProfile> profile;
+  // A fixed-size buffer (this runs 8 times a pass on every marker; heap allocations were a measurable
+  // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
+  const int samples = 2 * half + 1;
   int found = 0;
   for (int k = 0; k < count; ++k) {
     const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
@@ -83,11 +91,8 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
         std::max(a.y, b.y) > grey.rows - 2.0) {
       continue;
     }
-    for (int i = -half; i <= half; ++i) {
-      const cv::Point2d p = base + outward * (i * step);
-      profile[i + half] = internal::SampleBilinear(grey, p.x, p.y);
-    }
-    const double dark = profile[0], light = profile[samples - 1];
+    // The profile's ends first: the rest is read only where they differ enough.
+    const double dark = SampleInside(grey, a.x, a.y), light = SampleInside(grey, b.x, b.y);
     if (light - dark < 10.0) continue;  // too little contrast to place an edge
     // Where the border is wide enough for the profile to reach flat dark and light on both sides,
     // the edge sits where the area under the normalised profile says: exact for a box-filtered
@@ -99,15 +104,22 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
     const double level = 0.5 * (dark + light);
     int crossings = 0;
     double area = 0.0, crossing = std::numeric_limits<double>::infinity();
-    for (int i = 0; i + 1 < samples; ++i) {
-      if (profile[i] < level && profile[i + 1] >= level) {
+    double before = dark;  // the sample at i - 1
+    for (int i = 1; i < samples; ++i) {
+      double value = light;
+      if (i + 1 < samples) {
+        const cv::Point2d p = base + outward * ((i - half) * step);
+        value = SampleInside(grey, p.x, p.y);
+      }
+      if (before < level && value >= level) {
         ++crossings;
-        const double at = (i - half + (level - profile[i]) / (profile[i + 1] - profile[i])) * step;
+        const double at = (i - 1 - half + (level - before) / (value - before)) * step;
         if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
-      } else if (profile[i] >= level && profile[i + 1] < level) {
+      } else if (before >= level && value < level) {
         ++crossings;
       }
-      area += profile[i] + profile[i + 1];
+      area += before + value;
+      before = value;
     }
     // Trapezoid rule over the profile normalised to [0, 1].
     area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
