@@ -11,6 +11,10 @@ namespace arucotag::internal {
 /// corners (RefineCornersOnEdgesSettled).
 inline constexpr double kEdgeFitSettledPx = 0.05;
 
+/// One pass of RefineCornersOnEdges (which makes two or three): for a tracked marker whose pattern fit
+/// starts from it plus the offset its fit added last frame, which carries the edge fit's bias along.
+int RefineCornersOnEdgesOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells);
+
 /// RefineCornersOnEdges, true when it measured all four corners in its last pass and that pass, or
 /// else one more, moved none of them by over `settled` px: the fit has reached its fixed point, which
 /// does not depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns.
