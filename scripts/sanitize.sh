@@ -50,7 +50,9 @@ done
 arucotag_source_devel
 find_nodelet() { /usr/bin/python3 -c 'import roslib.packages as p; print(p.find_node("nodelet", "nodelet")[0])'; }
 wrapper="${ARUCOTAG_BUILD}/devel/lib/nodelet/nodelet"
-rm -f "${wrapper}"
+# The folder goes too: roslib takes an empty devel/lib/nodelet (an earlier run's wrapper folder with
+# the wrapper removed) for nodelet's own and finds no executable in it, so a second run failed here.
+rm -rf "$(dirname "${wrapper}")"
 real_nodelet="$(find_nodelet)" || fail "cannot find nodelet's executable"
 mkdir -p "$(dirname "${wrapper}")"
 {
