@@ -37,18 +37,6 @@ constexpr double kOtherEdgeClearance = 2.5;
 // Markers with a shorter perimeter (px) get a third pass.
 constexpr double kSmallPerimeter = 200.0;
 
-// internal::SampleBilinear where (x, y) is known to lie in [0, cols - 2] x [0, rows - 2], as every
-// profile sample does: truncation is the floor there and no clamp is needed (a fifth fewer
-// instructions in the edge fit). The same arithmetic, so the same values.
-inline double SampleInside(const cv::Mat& grey, double x, double y) {
-  const int ix = static_cast<int>(x), iy = static_cast<int>(y);
-  const double a = x - ix, b = y - iy;
-  const uchar* r0 = grey.ptr<uchar>(iy) + ix;
-  const uchar* r1 = r0 + grey.step[0];
-  const double top = r0[0] + a * (r0[1] - r0[0]), bottom = r1[0] + a * (r1[1] - r1[0]);
-  return top + b * (bottom - top);
-}
-
 struct Line {
   cv::Point2d point, direction;  // direction is unit length
 };
@@ -92,7 +80,7 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
       continue;
     }
     // The profile's ends first: the rest is read only where they differ enough.
-    const double dark = SampleInside(grey, a.x, a.y), light = SampleInside(grey, b.x, b.y);
+    const double dark = internal::SampleInside(grey, a.x, a.y), light = internal::SampleInside(grey, b.x, b.y);
     if (light - dark < 10.0) continue;  // too little contrast to place an edge
     // Where the border is wide enough for the profile to reach flat dark and light on both sides,
     // the edge sits where the area under the normalised profile says: exact for a box-filtered
@@ -109,7 +97,7 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
       double value = light;
       if (i + 1 < samples) {
         const cv::Point2d p = base + outward * ((i - half) * step);
-        value = SampleInside(grey, p.x, p.y);
+        value = internal::SampleInside(grey, p.x, p.y);
       }
       if (before < level && value >= level) {
         ++crossings;
