@@ -70,13 +70,17 @@ rosparam set use_sim_time true
 # is reported on stderr, and each dead rviz's log is kept beside the screenshot.
 RVIZ_LOG="${LOG%.log}_rviz.log"
 died() { grep -q 'rviz-[0-9]*\] process has died' "${RVIZ_LOG}"; }
+# A roslaunch of ours: SIGINT, up to 10 s to end, then SIGKILL.
+stop_launch() {
+  kill -INT "$1" 2>/dev/null || true
+  for _ in $(seq 50); do kill -0 "$1" 2>/dev/null || break; sleep 0.2; done
+  kill -KILL "$1" 2>/dev/null || true
+  wait "$1" 2>/dev/null || true
+}
 rviz_launch=""
 stop_rviz() {
   [ -n "${rviz_launch}" ] || return 0
-  kill -INT "${rviz_launch}" 2>/dev/null || true
-  for _ in $(seq 50); do kill -0 "${rviz_launch}" 2>/dev/null || break; sleep 0.2; done
-  kill -KILL "${rviz_launch}" 2>/dev/null || true
-  wait "${rviz_launch}" 2>/dev/null || true
+  stop_launch "${rviz_launch}"
   rviz_launch=""
 }
 start_rviz() {  # 0 once rviz is up; 1 when it died first, 2 when it never subscribed
@@ -195,17 +199,11 @@ replay() {  # one replay, rviz already up, to its last frame; 1 when rviz died, 
   echo "rviz_screenshot: rviz is not running, see ${LOG}; nodes: $(rosnode list 2>&1 | tr "\n" " ")" >&2
   return 2
 }
-stop_replay() {
-  kill -INT "${launch}" 2>/dev/null || true
-  for _ in $(seq 50); do kill -0 "${launch}" 2>/dev/null || break; sleep 0.2; done
-  kill -KILL "${launch}" 2>/dev/null || true
-  wait "${launch}" 2>/dev/null || true
-}
 up_rviz || exit 1
 status=0
 replay || status=$?
 if [ ${status} -eq 1 ]; then
-  stop_replay
+  stop_launch "${launch}"
   mv "${LOG}" "${LOG%.log}_try1.log"
   mv "${RVIZ_LOG}" "${RVIZ_LOG%.log}_try1.log"
   echo "rviz_screenshot: rviz died during the replay (logs kept as ${LOG%.log}_try1.log and ${RVIZ_LOG%.log}_try1.log), replaying once more" >&2
