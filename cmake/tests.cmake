@@ -7,6 +7,7 @@ catkin_add_gtest(test_core
   test/core/test_depth_noise.cpp
   test/core/test_draw.cpp
   test/core/test_camera_model.cpp
+  test/core/test_contours.cpp
   test/core/test_fast_path.cpp
   test/core/test_pcl_cloud.cpp
   test/core/test_point_cloud.cpp

@@ -19,7 +19,8 @@
 #include <numeric>
 
 #include <opencv2/imgproc.hpp>
-#include <opencv2/imgproc/imgproc_c.h>  // cvFindContours: contours in one arena, not a vector each
+
+#include "contours.hpp"
 
 namespace arucotag::internal {
 
@@ -45,10 +46,10 @@ cv::Point2f ToFull(const cv::Point2f& p, int level) {
 int MaxDim(const cv::Size& s) { return std::max(s.width, s.height); }
 
 // cv::adaptiveThreshold(src, MEAN_C, THRESH_BINARY_INV, W, constant) written into `out`, which
-// gets a 1-pixel zero frame around it (what cv::findContours pads with). Same decision as OpenCV:
-// black (255) where src + floor(constant) <= round(box mean), edges replicated. The box sums are
-// 16-bit, row by row, so the compiler vectorises every loop; OpenCV's version compares through a
-// per-pixel table look-up.
+// gets a 1-pixel zero frame around it (what BorderScan needs). Same decision as OpenCV: black
+// (kForeground, where OpenCV writes 255) where src + floor(constant) <= round(box mean), edges
+// replicated. The box sums are 16-bit, row by row, so the compiler vectorises every loop; OpenCV's
+// version compares through a per-pixel table look-up.
 template <int W>
 ARUCOTAG_INLINE void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
   constexpr int r = W / 2;
@@ -84,7 +85,7 @@ ARUCOTAG_INLINE void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
       for (int k = 0; k < W; ++k) sum = static_cast<uint16_t>(sum + c[x + k]);
       const uint16_t lhs = static_cast<uint16_t>((in[x] + delta) * (2 * area));
       const uint16_t rhs = static_cast<uint16_t>(2 * sum + area);
-      dst[x + 1] = lhs <= rhs ? 255 : 0;
+      dst[x + 1] = lhs <= rhs ? kForeground : kBackground;
     }
   }
 }
@@ -102,7 +103,7 @@ void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   if (fits && window == 7) return BoxThreshold7(src, delta, out);
   if (fits && window == 11) return BoxThreshold11(src, delta, out);
   cv::Mat binary;
-  cv::adaptiveThreshold(src, binary, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, constant);
+  cv::adaptiveThreshold(src, binary, kForeground, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, constant);
   cv::copyMakeBorder(binary, out, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
 }
 
@@ -114,13 +115,6 @@ void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
 void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level_size, const SearchTask& task,
                      int inner, const DetectorConfig& config, std::vector<Quad>& out, const cv::Rect* near = nullptr,
                      int tolerance = 0) {
-  CvMat header = cvMat(binary);
-  // One arena per thread, emptied (not freed) before each use.
-  thread_local const cv::MemStorage storage(cvCreateMemStorage(0));
-  cvClearMemStorage(storage);
-  CvSeq* first = nullptr;
-  cvFindContours(&header, storage, &first, sizeof(CvContour), CV_RETR_LIST, CV_CHAIN_APPROX_NONE, cvPoint(-1, -1));
-
   // Image border as cv::aruco applies it.
   const int border = task.level == 0 ? config.min_distance_to_border
                                      : std::max(1, static_cast<int>(std::ceil(config.min_distance_to_border *
@@ -131,11 +125,15 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
   const int bottom =
       roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border;
 
+  // Borders come in raster order; cv::findContours lists them last found first, and so does `out`
+  // (of equal quads, merging keeps the one listed last).
+  const size_t first = out.size();
   thread_local std::vector<cv::Point> contour, approx;
-  for (CvSeq* seq = first; seq; seq = seq->h_next) {
-    const int n = seq->total;
+  BorderScan scan(binary);
+  while (scan.Next(contour)) {
+    const int n = static_cast<int>(contour.size());
     if (n < task.min_perimeter || n > task.max_perimeter) continue;
-    const cv::Rect box = reinterpret_cast<CvContour*>(seq)->rect;
+    const cv::Rect box = cv::boundingRect(contour);
     if (near) {
       const cv::Rect b = box + roi.tl();
       if (std::abs(b.x - near->x) > tolerance || std::abs(b.y - near->y) > tolerance ||
@@ -147,8 +145,6 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     // A quad whose bounding box is this thin has a side under cv::aruco's min_corner_distance
     // anyway (and no decodable cells): skip the polygon fit for the clutter's lines and arcs.
     if (16 * std::min(box.width, box.height) < n) continue;
-    contour.resize(n);
-    cvCvtSeqToArray(seq, contour.data(), CV_WHOLE_SEQ);
     // Likewise a contour enclosing almost nothing (a diagonal line, an arc) cannot be a quad with
     // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps.
     if (128.0 * std::fabs(cv::contourArea(contour)) < double(n) * n) continue;
@@ -182,6 +178,7 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     quad.area = static_cast<float>(cv::contourArea(std::vector<cv::Point2f>(quad.corners.begin(), quad.corners.end())));
     out.push_back(quad);
   }
+  std::reverse(out.begin() + first, out.end());
 }
 
 // Quads of one task: its region thresholded (the region's edges replicated, so quads within the
@@ -335,10 +332,10 @@ void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const
       const int* __restrict t1 = top + reach + r + 1;
       for (int xx = 0; xx < roi.width; ++xx) {
         const int sum = b1[xx] - b0[xx] - t1[xx] + t0[xx];
-        out[xx] = (in[xx] + delta) * 2 * area <= 2 * sum + area ? 255 : 0;
+        out[xx] = (in[xx] + delta) * 2 * area <= 2 * sum + area ? kForeground : kBackground;
       }
       const auto [lo, hi] = span[yy];
-      if (lo <= hi) std::fill(out + std::max(lo, 0), out + std::min(hi, roi.width - 1) + 1, uchar(255));
+      if (lo <= hi) std::fill(out + std::max(lo, 0), out + std::min(hi, roi.width - 1) + 1, kForeground);
     }
     QuadsFromBinary(binary, roi, frame, MakeTask(config, frame, 0, roi, w), 1, config, found, &box, tolerance);
   }

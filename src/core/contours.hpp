@@ -1,0 +1,35 @@
+// Borders of a binary image for the candidate search (internal to arucotag_core). See contours.cpp.
+#pragma once
+
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+namespace arucotag::internal {
+
+/// Pixel values of the image BorderScan reads: background and foreground. It marks followed border
+/// pixels with values of its own, in place.
+constexpr uchar kBackground = 0;
+constexpr uchar kForeground = 1;
+
+/// Every border (outer and hole) of a CV_8UC1 image of kBackground/kForeground pixels whose
+/// outermost rows and columns are background, with the points of cv::findContours(RETR_LIST,
+/// CHAIN_APPROX_NONE, offset (-1, -1)): coordinates are those of the image without its frame. That
+/// function lists the same borders, last found first.
+class BorderScan {
+ public:
+  explicit BorderScan(cv::Mat& binary);
+
+  /// The next border in raster order: false when there is none left. `points` gets every pixel of
+  /// it (CHAIN_APPROX_NONE).
+  bool Next(std::vector<cv::Point>& points);
+
+ private:
+  uchar* data_;
+  size_t step_;
+  int rows_, cols_;
+  int x_ = 1, y_ = 1;
+  uchar prev_ = kBackground;
+};
+
+}  // namespace arucotag::internal

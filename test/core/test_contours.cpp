@@ -1,0 +1,120 @@
+// BorderScan, the candidate search's border follower, against what it replaces:
+// cv::findContours(RETR_LIST, CHAIN_APPROX_NONE) through OpenCV's C API, which keeps each border's
+// bounding box and lists the borders in its own order. Same borders, same order, same points, same
+// boxes, on thresholded real photos, on noise of every density, and on shapes made to be awkward:
+// isolated pixels, one-pixel lines and rings, diagonal touches, holes inside holes, the frame's edge.
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/imgproc/imgproc_c.h>
+
+#include "contours.hpp"
+
+namespace arucotag::internal {
+namespace {
+
+struct Border {
+  std::vector<cv::Point> points;
+  cv::Rect box;
+};
+
+// OpenCV's borders of a 0/1 image with a zero frame, in the order it lists them.
+std::vector<Border> OpenCvBorders(cv::Mat binary) {
+  cv::MemStorage storage(cvCreateMemStorage(0));
+  CvMat header = cvMat(binary);
+  CvSeq* first = nullptr;
+  cvFindContours(&header, storage, &first, sizeof(CvContour), CV_RETR_LIST, CV_CHAIN_APPROX_NONE, cvPoint(-1, -1));
+  std::vector<Border> borders;
+  for (CvSeq* seq = first; seq; seq = seq->h_next) {
+    Border b;
+    b.points.resize(seq->total);
+    cvCvtSeqToArray(seq, b.points.data(), CV_WHOLE_SEQ);
+    b.box = reinterpret_cast<CvContour*>(seq)->rect;
+    borders.push_back(b);
+  }
+  return borders;
+}
+
+// BorderScan's, last found first as OpenCV lists them.
+std::vector<Border> ScanBorders(cv::Mat binary) {
+  std::vector<Border> borders;
+  BorderScan scan(binary);
+  Border b;
+  while (scan.Next(b.points)) {
+    b.box = cv::boundingRect(b.points);
+    borders.insert(borders.begin(), b);
+  }
+  return borders;
+}
+
+// `inside` (0/nonzero) as the 0/1 image with a zero frame the candidate search hands over.
+cv::Mat Framed(const cv::Mat& inside) {
+  cv::Mat binary;
+  cv::copyMakeBorder(inside != 0, binary, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  return binary / 255;
+}
+
+void ExpectSameBorders(const cv::Mat& binary, const std::string& what) {
+  const std::vector<Border> expected = OpenCvBorders(binary.clone());
+  const std::vector<Border> got = ScanBorders(binary.clone());
+  ASSERT_EQ(got.size(), expected.size()) << what;
+  for (size_t i = 0; i < got.size(); ++i) {
+    ASSERT_EQ(got[i].box, expected[i].box) << what << ", border " << i;
+    ASSERT_EQ(got[i].points, expected[i].points) << what << ", border " << i;
+  }
+}
+
+TEST(BorderScan, SameBordersAsOpenCvOnThresholdedPhotos) {
+  int borders = 0;
+  for (const char* name : {"opencv_tutorial/singlemarkersoriginal.jpg", "opencv_tutorial/choriginal.jpg",
+                           "ubiquity_fiducials/tag_245-246_d7_14cm.png"}) {
+    const cv::Mat grey = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + name, cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(grey.empty()) << name;
+    for (int window : {3, 7, 23}) {
+      cv::Mat inside;
+      cv::adaptiveThreshold(grey, inside, 1, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, 7);
+      const cv::Mat binary = Framed(inside);
+      ExpectSameBorders(binary, std::string(name) + " window " + std::to_string(window));
+      borders += static_cast<int>(OpenCvBorders(binary.clone()).size());
+    }
+  }
+  EXPECT_GT(borders, 1000);  // the photos' clutter, not a handful of shapes
+}
+
+TEST(BorderScan, SameBordersAsOpenCvOnNoise) {
+  cv::RNG rng(14);
+  for (int trial = 0; trial < 60; ++trial) {
+    const cv::Size size(1 + rng.uniform(0, 70), 1 + rng.uniform(0, 50));
+    const double density = rng.uniform(0.02, 0.98);
+    cv::Mat values(size, CV_32F);
+    rng.fill(values, cv::RNG::UNIFORM, 0.0, 1.0);
+    cv::Mat inside = values < density;
+    if (trial % 3 == 0) cv::dilate(inside, inside, cv::Mat());  // blobs with holes, not only specks
+    ExpectSameBorders(Framed(inside), "noise " + std::to_string(trial));
+  }
+}
+
+TEST(BorderScan, SameBordersAsOpenCvOnAwkwardShapes) {
+  cv::Mat inside(40, 61, CV_8U, cv::Scalar(0));
+  inside.at<uchar>(0, 0) = 1;                                                  // isolated, at the frame
+  inside.at<uchar>(5, 5) = 1;                                                  // isolated
+  inside.at<uchar>(6, 6) = 1;                                                  // diagonal neighbour
+  cv::line(inside, {10, 2}, {30, 2}, cv::Scalar(1));                           // one-pixel line
+  cv::line(inside, {2, 10}, {20, 30}, cv::Scalar(1));                          // diagonal line
+  cv::rectangle(inside, cv::Rect(25, 8, 20, 20), cv::Scalar(1));               // one-pixel ring
+  cv::rectangle(inside, cv::Rect(29, 12, 12, 12), cv::Scalar(1), cv::FILLED);  // ... holding a block
+  inside(cv::Rect(32, 15, 6, 6)).setTo(0);                                     // ... with a hole
+  inside.at<uchar>(17, 34) = 1;                                                // ... holding a pixel
+  cv::circle(inside, {52, 30}, 8, cv::Scalar(1), 2);                           // ring to the edge
+  inside.col(60).setTo(1);                                                     // the right edge
+  inside.row(39).setTo(1);                                                     // the bottom edge
+  ExpectSameBorders(Framed(inside), "shapes");
+  ExpectSameBorders(Framed(cv::Mat(5, 7, CV_8U, cv::Scalar(1))), "all foreground");
+  ExpectSameBorders(Framed(cv::Mat(5, 7, CV_8U, cv::Scalar(0))), "all background");
+}
+
+}  // namespace
+}  // namespace arucotag::internal
