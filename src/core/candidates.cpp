@@ -133,7 +133,8 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
   while (scan.Next(contour)) {
     const int n = static_cast<int>(contour.size());
     if (n < task.min_perimeter || n > task.max_perimeter) continue;
-    const cv::Rect box = cv::boundingRect(contour);
+    const Outline outline = Measure(contour);
+    const cv::Rect& box = outline.box;
     if (near) {
       const cv::Rect b = box + roi.tl();
       if (std::abs(b.x - near->x) > tolerance || std::abs(b.y - near->y) > tolerance ||
@@ -147,11 +148,11 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     if (16 * std::min(box.width, box.height) < n) continue;
     // Likewise a contour enclosing almost nothing (a diagonal line, an arc) cannot be a quad with
     // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps.
-    if (128.0 * std::fabs(cv::contourArea(contour)) < double(n) * n) continue;
-    cv::approxPolyDP(contour, approx, n * config.polygonal_approx_accuracy_rate, true);
+    if (64 * std::abs(outline.twice_area) < static_cast<int64_t>(n) * n) continue;
+    ApproximatePolygon(contour, n * config.polygonal_approx_accuracy_rate, approx);
     if (approx.size() != 4 && !near && task.level == 0 && n < kSmallContourPoints) {
-      cv::approxPolyDP(contour, approx, n * std::max(config.polygonal_approx_accuracy_rate, kSmallContourApproxRate),
-                       true);
+      ApproximatePolygon(contour, n * std::max(config.polygonal_approx_accuracy_rate, kSmallContourApproxRate),
+                         approx);
     }
     if (approx.size() != 4 || !cv::isContourConvex(approx)) continue;
     double min_dist_sq = 1e300;

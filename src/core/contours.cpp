@@ -6,9 +6,13 @@
 // border's points go to one reused vector, and the caller measures only the borders it keeps.
 #include "contours.hpp"
 
+#include "geometry.hpp"
+
 #include <algorithm>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
+#include <utility>
 
 namespace arucotag::internal {
 
@@ -88,6 +92,18 @@ void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<c
   }
 }
 
+// visit(i) for each index after a and before b on a ring of `count` indices, in that order (with
+// a == b, every index but a), as at most two plain loops.
+template <class Visit>
+ARUCOTAG_INLINE void Between(int a, int b, int count, Visit&& visit) {
+  if (a < b) {
+    for (int i = a + 1; i < b; ++i) visit(i);
+    return;
+  }
+  for (int i = a + 1; i < count; ++i) visit(i);
+  for (int i = 0; i < b; ++i) visit(i);
+}
+
 }  // namespace
 
 BorderScan::BorderScan(cv::Mat& binary)
@@ -118,6 +134,126 @@ bool BorderScan::Next(std::vector<cv::Point>& points) {
     prev_ = kBackground;
   }
   return false;
+}
+
+Outline Measure(const std::vector<cv::Point>& points) {
+  Outline outline;
+  if (points.empty()) return outline;
+  int x0 = points[0].x, x1 = x0, y0 = points[0].y, y1 = y0;
+  int64_t twice = 0;
+  cv::Point prev = points.back();
+  for (const cv::Point& p : points) {
+    x0 = std::min(x0, p.x);
+    x1 = std::max(x1, p.x);
+    y0 = std::min(y0, p.y);
+    y1 = std::max(y1, p.y);
+    twice += static_cast<int64_t>(prev.x) * p.y - static_cast<int64_t>(prev.y) * p.x;
+    prev = p;
+  }
+  outline.box = cv::Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
+  outline.twice_area = twice;
+  return outline;
+}
+
+void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, std::vector<cv::Point>& polygon) {
+  polygon.clear();
+  const int count = static_cast<int>(points.size());
+  if (count == 0) return;
+  const cv::Point* p = points.data();
+  const double eps2 = epsilon * epsilon;
+  const auto after = [count](int i) { return i + 1 == count ? 0 : i + 1; };
+
+  // Two points far apart: from point 0 the farthest point, from that one the farthest, and again.
+  // Distances are exact in integers; ties keep the first.
+  int from = 0, offset = 0;
+  bool within = false;
+  for (int round = 0; round < 3; ++round) {
+    from = (from + offset) % count;
+    const cv::Point o = p[from];
+    int64_t farthest = 0;
+    int far_at = -1;
+    Between(from, from, count, [&](int at) {
+      const int64_t dx = p[at].x - o.x, dy = p[at].y - o.y;
+      const int64_t d = dx * dx + dy * dy;
+      if (d > farthest) {
+        farthest = d;
+        far_at = at;
+      }
+    });
+    if (far_at >= 0) offset = far_at > from ? far_at - from : far_at + count - from;
+    within = static_cast<double>(farthest) <= eps2;
+  }
+
+  // Douglas-Peucker on the two arcs between them, depth first, the arc from `from` first: an arc
+  // whose farthest point from its chord is within epsilon contributes its first point.
+  thread_local std::vector<std::pair<int, int>> arcs;
+  arcs.clear();
+  if (within) {
+    polygon.push_back(p[from]);
+  } else {
+    const int to = (offset + from) % count;
+    arcs.emplace_back(to, from);
+    arcs.emplace_back(from, to);
+  }
+  while (!arcs.empty()) {
+    const auto [a, b] = arcs.back();
+    arcs.pop_back();
+    int split = -1;
+    if (after(a) != b) {
+      const cv::Point o = p[a];
+      const int64_t dx = p[b].x - o.x, dy = p[b].y - o.y;
+      int64_t farthest = 0;  // distance from the chord times the chord's length
+      Between(a, b, count, [&](int at) {
+        const int64_t d = std::abs((p[at].y - o.y) * dx - (p[at].x - o.x) * dy);
+        if (d > farthest) {
+          farthest = d;
+          split = at;
+        }
+      });
+      const double far = static_cast<double>(farthest);
+      if (far * far <= eps2 * static_cast<double>(dx * dx + dy * dy)) split = -1;
+    }
+    if (split < 0) {
+      polygon.push_back(p[a]);
+    } else {
+      arcs.emplace_back(split, b);
+      arcs.emplace_back(a, split);
+    }
+  }
+
+  // Clean-up, in place and cyclically: a vertex within epsilon / sqrt(2) of the chord between its
+  // neighbours, between them along it, and whose chord is not axis-parallel, is dropped.
+  const int n = static_cast<int>(polygon.size());
+  const auto next = [n](int i) { return i + 1 == n ? 0 : i + 1; };
+  int kept = n;
+  int read = n - 1;
+  cv::Point start = polygon[read];
+  read = next(read);
+  int write = read;
+  cv::Point mid = polygon[read];
+  read = next(read);
+  for (int i = 0; i < n && kept > 2; ++i) {
+    const cv::Point end = polygon[read];
+    read = next(read);
+    const int64_t dx = end.x - start.x, dy = end.y - start.y;
+    const int64_t cross = std::abs(static_cast<int64_t>(mid.x - start.x) * dy - static_cast<int64_t>(mid.y - start.y) * dx);
+    const int64_t along = static_cast<int64_t>(mid.x - start.x) * (end.x - mid.x) +
+                          static_cast<int64_t>(mid.y - start.y) * (end.y - mid.y);
+    const double off = static_cast<double>(cross);
+    if (off * off <= 0.5 * eps2 * static_cast<double>(dx * dx + dy * dy) && dx != 0 && dy != 0 && along >= 0) {
+      --kept;
+      polygon[write] = start = end;
+      write = next(write);
+      mid = polygon[read];
+      read = next(read);
+      ++i;
+      continue;
+    }
+    polygon[write] = start = mid;
+    write = next(write);
+    mid = end;
+  }
+  polygon.resize(kept);
 }
 
 }  // namespace arucotag::internal

@@ -1,6 +1,7 @@
 // Borders of a binary image for the candidate search (internal to arucotag_core). See contours.cpp.
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -31,5 +32,19 @@ class BorderScan {
   int x_ = 1, y_ = 1;
   uchar prev_ = kBackground;
 };
+
+/// A closed polygon's bounding box and twice its signed area (the shoelace sum), exactly: what
+/// cv::boundingRect gives, and twice what cv::contourArea(points, true) gives, in one pass.
+struct Outline {
+  cv::Rect box;
+  int64_t twice_area = 0;
+};
+Outline Measure(const std::vector<cv::Point>& points);
+
+/// cv::approxPolyDP(points, polygon, epsilon, true) as OpenCV 4 computes it up to 4.12 (Douglas-Peucker
+/// from two points far apart, by distance to the chord's line, then vertices on almost straight
+/// runs dropped; opencv/opencv#28119 later measures to the segment), in integer arithmetic where
+/// OpenCV's is exact anyway: the same vertices at a fraction of the cost, on any OpenCV version.
+void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, std::vector<cv::Point>& polygon);
 
 }  // namespace arucotag::internal

@@ -64,6 +64,11 @@ void ExpectSameBorders(const cv::Mat& binary, const std::string& what) {
   for (size_t i = 0; i < got.size(); ++i) {
     ASSERT_EQ(got[i].box, expected[i].box) << what << ", border " << i;
     ASSERT_EQ(got[i].points, expected[i].points) << what << ", border " << i;
+    // Measure: OpenCV's box and area of the same points, in one pass.
+    const Outline outline = Measure(got[i].points);
+    ASSERT_EQ(outline.box, expected[i].box) << what << ", border " << i;
+    ASSERT_EQ(0.5 * static_cast<double>(outline.twice_area), cv::contourArea(got[i].points, true))
+        << what << ", border " << i;
   }
 }
 
@@ -82,6 +87,34 @@ TEST(BorderScan, SameBordersAsOpenCvOnThresholdedPhotos) {
     }
   }
   EXPECT_GT(borders, 1000);  // the photos' clutter, not a handful of shapes
+}
+
+// ApproximatePolygon against cv::approxPolyDP (closed) on every border of the thresholded photos, at
+// the tolerances the candidate search uses (a share of the border's length) and fixed ones. OpenCV
+// after 4.12 measures to the chord's segment, not its line (opencv/opencv#28119): nothing to compare.
+TEST(ApproximatePolygon, SameVerticesAsOpenCvOnPhotoBorders) {
+  if (CV_VERSION_MAJOR * 100 + CV_VERSION_MINOR > 412) GTEST_SKIP() << "cv::approxPolyDP's distance changed";
+  int compared = 0, quads = 0;
+  std::vector<cv::Point> ours, theirs;
+  for (const char* name : {"opencv_tutorial/singlemarkersoriginal.jpg", "opencv_tutorial/chocclusion_original.jpg",
+                           "ubiquity_fiducials/tag_01_d7_14cm.png"}) {
+    const cv::Mat grey = cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + name, cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(grey.empty()) << name;
+    cv::Mat inside;
+    cv::adaptiveThreshold(grey, inside, 1, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, 7, 7);
+    for (const Border& border : ScanBorders(Framed(inside))) {
+      const double n = static_cast<double>(border.points.size());
+      for (const double epsilon : {0.03 * n, 0.05 * n, 1.0, 3.0}) {
+        ApproximatePolygon(border.points, epsilon, ours);
+        cv::approxPolyDP(border.points, theirs, epsilon, true);
+        ASSERT_EQ(ours, theirs) << name << ", " << border.points.size() << " points, epsilon " << epsilon;
+        ++compared;
+        quads += ours.size() == 4;
+      }
+    }
+  }
+  EXPECT_GT(compared, 10000);
+  EXPECT_GT(quads, 100);  // markers and clutter squares among them, not only specks
 }
 
 TEST(BorderScan, SameBordersAsOpenCvOnNoise) {
