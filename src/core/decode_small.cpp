@@ -9,7 +9,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
+#include <vector>
 
 #include <opencv2/imgproc.hpp>
 
@@ -186,10 +188,9 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
     normal.at<double>(a, a) += ridge;
     rhs.at<double>(a) += ridge * mean;
   }
-  cv::Mat solution;
-  if (!cv::solve(normal, rhs, solution, cv::DECOMP_CHOLESKY)) return false;
-  cells.assign(solution.begin<double>(), solution.begin<double>() + n * n);
-  quiet = solution.at<double>(n * n);
+  if (!SolveEnvelope(normal, rhs)) return false;
+  cells.assign(rhs.begin<double>(), rhs.begin<double>() + n * n);
+  quiet = rhs.at<double>(n * n);
   return true;
 }
 
@@ -525,6 +526,51 @@ std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<s
     markers.push_back(marker);
   }
   return markers;
+}
+
+bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs) {
+  CV_Assert(normal.type() == CV_64F && rhs.type() == CV_64F && normal.rows == normal.cols && rhs.rows == normal.rows &&
+            rhs.cols == 1 && normal.isContinuous() && rhs.isContinuous());
+  const int m = normal.rows;
+  double* a = normal.ptr<double>();
+  double* b = rhs.ptr<double>();
+  const auto at = [a, m](int i, int j) -> double& { return a[static_cast<size_t>(i) * m + j]; };
+  // Row i of the lower triangle is zero left of first[i], and so is row i of L: its entries there
+  // are sums of nothing.
+  thread_local std::vector<int> first;
+  first.resize(static_cast<size_t>(m));
+  for (int i = 0; i < m; ++i) {
+    int f = 0;
+    while (f < i && at(i, f) == 0.0) ++f;
+    first[i] = f;
+  }
+  // L L^T = normal, L over the lower triangle, its diagonal stored inverted; the products are
+  // summed in the order of the dense factorisation, less the ones with a zero factor.
+  for (int i = 0; i < m; ++i) {
+    for (int j = first[i]; j < i; ++j) {
+      double s = at(i, j);
+      for (int k = std::max(first[i], first[j]); k < j; ++k) s -= at(i, k) * at(j, k);
+      at(i, j) = s * at(j, j);
+    }
+    double s = at(i, i);
+    for (int k = first[i]; k < i; ++k) s -= at(i, k) * at(i, k);
+    if (s < std::numeric_limits<double>::epsilon()) return false;
+    at(i, i) = 1.0 / std::sqrt(s);
+  }
+  // L y = b, then L^T x = y, in place.
+  for (int i = 0; i < m; ++i) {
+    double s = b[i];
+    for (int k = first[i]; k < i; ++k) s -= at(i, k) * b[k];
+    b[i] = s * at(i, i);
+  }
+  for (int i = m - 1; i >= 0; --i) {
+    double s = b[i];
+    for (int k = m - 1; k > i; --k) {
+      if (first[k] <= i) s -= at(k, i) * b[k];
+    }
+    b[i] = s * at(i, i);
+  }
+  return true;
 }
 
 }  // namespace arucotag::internal

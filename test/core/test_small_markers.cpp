@@ -43,6 +43,43 @@ double MaxCornerError(const ArucoTag& tag, const std::array<cv::Point2f, 4>& tru
   return error;
 }
 
+// The cell estimate's solver against cv::solve (DECOMP_CHOLESKY) on normal matrices shaped like the
+// estimate's: n x n cells, each coupled with its 8 neighbours, plus a quiet-zone unknown coupled
+// with the border cells, and a ridge on the diagonal; and on a dense one. Same solution (to
+// rounding), and the same refusal of a matrix that is not positive definite.
+TEST(SmallMarkers, EnvelopeSolverMatchesOpenCvCholesky) {
+  cv::RNG rng(6);
+  for (int trial = 0; trial < 40; ++trial) {
+    const int n = 3 + trial % 6, m = n * n + 1;
+    const bool dense = trial % 10 == 9;
+    cv::Mat design(6 * m, m, CV_64F, cv::Scalar(0));  // rows: pixels; columns: the unknowns they see
+    for (int r = 0; r < design.rows; ++r) {
+      const int cy = rng.uniform(0, n), cx = rng.uniform(0, n);
+      for (int dy = 0; dy <= 1; ++dy) {
+        for (int dx = 0; dx <= 1; ++dx) {
+          const int y = cy + dy, x = cx + dx;
+          const int k = (y < n && x < n) ? y * n + x : n * n;  // past the edge: the quiet zone
+          design.at<double>(r, k) += rng.uniform(0.05, 1.0);
+        }
+      }
+      if (dense) design.at<double>(r, rng.uniform(0, m)) += 0.5;
+    }
+    cv::Mat normal = design.t() * design + 0.02 * cv::Mat::eye(m, m, CV_64F);
+    cv::Mat rhs(m, 1, CV_64F);
+    rng.fill(rhs, cv::RNG::UNIFORM, 0.0, 255.0);
+    cv::Mat expected;
+    ASSERT_TRUE(cv::solve(normal, rhs, expected, cv::DECOMP_CHOLESKY));
+    cv::Mat a = normal.clone(), x = rhs.clone();
+    ASSERT_TRUE(internal::SolveEnvelope(a, x)) << "trial " << trial;
+    EXPECT_LE(cv::norm(x, expected, cv::NORM_INF), 1e-9 * cv::norm(expected, cv::NORM_INF)) << "trial " << trial;
+  }
+  // (4 x 4: cv::solve inverts 3 x 3 systems by formula, whatever the method.)
+  cv::Mat indefinite = (cv::Mat_<double>(4, 4) << 1, 0, 0, 2, 0, 1, 0, 0, 0, 0, 1, 0, 2, 0, 0, 1);
+  cv::Mat b = cv::Mat::ones(4, 1, CV_64F), unused;
+  EXPECT_FALSE(cv::solve(indefinite, b, unused, cv::DECOMP_CHOLESKY));
+  EXPECT_FALSE(internal::SolveEnvelope(indefinite, b));
+}
+
 // Every marker plain cv::aruco::detectMarkers finds, the fast path finds too: at these sizes the
 // fast path's own contours differ from cv::aruco's by a pixel, which used to flip its reading.
 TEST(SmallMarkers, FastPathFindsEveryMarkerOpenCvFinds) {
