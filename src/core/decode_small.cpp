@@ -127,8 +127,11 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
                        cv::Rect(0, 0, grey.cols, grey.rows);
   if (box.width < 2 || box.height < 2) return false;
   cv::Mat normal = cv::Mat::zeros(unknowns, unknowns, CV_64F), rhs = cv::Mat::zeros(unknowns, 1, CV_64F);
+  double* const lhs = normal.ptr<double>();
+  double* const rhs_at = rhs.ptr<double>();
   std::vector<double> weight(unknowns);
-  std::vector<int> touched;
+  // The unknowns a pixel's samples fall in (each sample adds one at most).
+  int touched[kCoverageSamples * kCoverageSamples];
   // Cell coordinates (unit square x n) of the pixel corners: within a pixel the homography is affine
   // to a ten-thousandth of a cell at these sizes, so each pixel's samples are interpolated between
   // its corners instead of each taking a projective division.
@@ -148,14 +151,14 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       const cv::Vec3d c = to_unit * cv::Vec3d(x, y, 1.0);
       const double cu = c[0] / c[2], cv_ = c[1] / c[2];
       if (cu < -margin || cv_ < -margin || cu > 1.0 + margin || cv_ > 1.0 + margin) continue;
-      touched.clear();
+      int touches = 0;
       const cv::Point2d* g = &grid[static_cast<size_t>(y - box.y) * gw + (x - box.x)];
       // The samples are convex combinations of the pixel's corners: when all four corners fall in
       // one cell, or on the outer side of one of the square's edges, so do all the samples, and the
       // pixel is that cell's (or the quiet zone's) whole (16 sixteenths add up to exactly 1).
       const int whole = WholeCell(g[0], g[1], g[gw], g[gw + 1], n);
       if (whole >= 0) {
-        touched.push_back(whole);
+        touched[touches++] = whole;
         weight[whole] = 1.0;
       } else {
         const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
@@ -166,17 +169,19 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
             const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
             const int cx = FloorInt(s.x), cy = FloorInt(s.y);
             const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
-            if (weight[k] == 0.0) touched.push_back(k);
+            if (weight[k] == 0.0) touched[touches++] = k;
             weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
           }
         }
       }
       const double value = grey.at<uchar>(y, x);
-      for (const int a : touched) {
-        rhs.at<double>(a) += weight[a] * value;
-        for (const int b : touched) normal.at<double>(a, b) += weight[a] * weight[b];
+      for (int i = 0; i < touches; ++i) {
+        const int a = touched[i];
+        rhs_at[a] += weight[a] * value;
+        double* row = lhs + static_cast<size_t>(a) * unknowns;
+        for (int j = 0; j < touches; ++j) row[touched[j]] += weight[a] * weight[touched[j]];
       }
-      for (const int a : touched) weight[a] = 0.0;
+      for (int i = 0; i < touches; ++i) weight[touched[i]] = 0.0;
       sum += value;
       ++rows;
     }
