@@ -29,14 +29,14 @@ constexpr size_t kMaxSmallCandidates = 96;
 /// kSmallCandidateMaxSide, and at least one pixel per cell of a marker with `cells` cells a side
 /// (its bits and borders): below that no cell can be read (an 80x80 frame of equalized noise gave 75
 /// such quads of 1-3 px, of 77 candidates).
+inline bool SmallCandidateSide(float side, int cells) { return side >= cells && side < kSmallCandidateMaxSide; }
+
 /// Solves normal * x = rhs (CV_64F, normal symmetric positive definite, rhs one column) as
 /// cv::solve(DECOMP_CHOLESKY) does, visiting only each row's envelope (from its first non-zero on):
 /// the cell estimate's normal matrix couples each cell with its neighbours alone, so this costs a
 /// tenth of the dense factorisation. `normal` is overwritten, `rhs` becomes x; false when the
 /// matrix is not positive definite.
 bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs);
-
-inline bool SmallCandidateSide(float side, int cells) { return side >= cells && side < kSmallCandidateMaxSide; }
 
 /// A marker the small decoder identified.
 struct SmallMarker {
