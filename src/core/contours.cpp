@@ -92,6 +92,9 @@ void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<c
   }
 }
 
+// The index after i on a ring of `count` indices.
+int NextOnRing(int i, int count) { return i + 1 == count ? 0 : i + 1; }
+
 // visit(i) for each index after a and before b on a ring of `count` indices, in that order (with
 // a == b, every index but a), as at most two plain loops.
 template <class Visit>
@@ -161,7 +164,6 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
   if (count == 0) return;
   const cv::Point* p = points.data();
   const double eps2 = epsilon * epsilon;
-  const auto after = [count](int i) { return i + 1 == count ? 0 : i + 1; };
 
   // Two points far apart: from point 0 the farthest point, from that one the farthest, and again.
   // Distances are exact in integers; ties keep the first.
@@ -199,7 +201,7 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
     const auto [a, b] = arcs.back();
     arcs.pop_back();
     int split = -1;
-    if (after(a) != b) {
+    if (NextOnRing(a, count) != b) {
       const cv::Point o = p[a];
       const int64_t dx = p[b].x - o.x, dy = p[b].y - o.y;
       int64_t farthest = 0;  // distance from the chord times the chord's length
@@ -224,17 +226,16 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
   // Clean-up, in place and cyclically: a vertex within epsilon / sqrt(2) of the chord between its
   // neighbours, between them along it, and whose chord is not axis-parallel, is dropped.
   const int n = static_cast<int>(polygon.size());
-  const auto next = [n](int i) { return i + 1 == n ? 0 : i + 1; };
   int kept = n;
   int read = n - 1;
   cv::Point start = polygon[read];
-  read = next(read);
+  read = NextOnRing(read, n);
   int write = read;
   cv::Point mid = polygon[read];
-  read = next(read);
+  read = NextOnRing(read, n);
   for (int i = 0; i < n && kept > 2; ++i) {
     const cv::Point end = polygon[read];
-    read = next(read);
+    read = NextOnRing(read, n);
     const int64_t dx = end.x - start.x, dy = end.y - start.y;
     const int64_t cross = std::abs(static_cast<int64_t>(mid.x - start.x) * dy - static_cast<int64_t>(mid.y - start.y) * dx);
     const int64_t along = static_cast<int64_t>(mid.x - start.x) * (end.x - mid.x) +
@@ -243,14 +244,14 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
     if (off * off <= 0.5 * eps2 * static_cast<double>(dx * dx + dy * dy) && dx != 0 && dy != 0 && along >= 0) {
       --kept;
       polygon[write] = start = end;
-      write = next(write);
+      write = NextOnRing(write, n);
       mid = polygon[read];
-      read = next(read);
+      read = NextOnRing(read, n);
       ++i;
       continue;
     }
     polygon[write] = start = mid;
-    write = next(write);
+    write = NextOnRing(write, n);
     mid = end;
   }
   polygon.resize(kept);
