@@ -15,6 +15,9 @@
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
+#include <cstdint>
+#include <numeric>
+#include <utility>
 
 #include <opencv2/imgproc.hpp>
 
@@ -80,6 +83,8 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   const int cols = grey.cols, rows = grey.rows;
   const uchar* pixels = grey.data;
   const size_t step = grey.step;
+  // The histogram for Otsu's threshold is counted as the pixels are read.
+  int histogram[256] = {0};
   for (int y = 0; y < size; ++y) {
     const double x0 = h(0, 1) * y + h(0, 2), y0 = h(1, 1) * y + h(1, 2), w0 = h(2, 1) * y + h(2, 2);
     uchar* out = &canonical[static_cast<size_t>(y) * size];
@@ -89,18 +94,23 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
       const int sx = cvRound((x0 + h(0, 0) * x) * w);
       const int sy = cvRound((y0 + h(1, 0) * x) * w);
       out[x] = (unsigned(sx) < unsigned(cols) && unsigned(sy) < unsigned(rows)) ? pixels[sy * step + sx] : 0;
+      ++histogram[out[x]];
     }
   }
 
   uchar bits[kMaxCells][kMaxCells] = {};
-  // Spread of the inner part (half a cell trimmed): too flat means all one colour, no Otsu.
-  double sum = 0.0, sum_sq = 0.0;
+  // Spread of the inner part (half a cell trimmed): too flat means all one colour, no Otsu. Summed
+  // in integers, the same exact values as in double; a row's squares stay within int up to 33k px.
+  int64_t sum = 0, sum_sq = 0;
   for (int y = cell / 2; y < size - cell / 2; ++y) {
+    const uchar* row = &canonical[static_cast<size_t>(y) * size];
+    int row_sum = 0, row_sq = 0;
     for (int x = cell / 2; x < size - cell / 2; ++x) {
-      const double v = canonical[static_cast<size_t>(y) * size + x];
-      sum += v;
-      sum_sq += v * v;
+      row_sum += row[x];
+      row_sq += row[x] * row[x];
     }
+    sum += row_sum;
+    sum_sq += row_sq;
   }
   const double n_inner = double(size - 2 * (cell / 2)) * (size - 2 * (cell / 2));
   const double mean = sum / n_inner;
@@ -108,9 +118,9 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   if (stddev < p.minOtsuStdDev) {
     for (auto& row : bits) std::fill(std::begin(row), std::end(row), mean > 127 ? 1 : 0);
   } else {
-    int histogram[256] = {0};
-    for (uchar v : canonical) ++histogram[v];
-    // OpenCV's getThreshVal_Otsu_8u.
+    // OpenCV's getThreshVal_Otsu_8u, over the grey levels that occur: at an empty level q1 and mu1
+    // keep their values (up to round-off), so its sigma only repeats the last level's, and a
+    // threshold moved onto an empty level splits the pixels as the level before it does.
     const double scale = 1.0 / canonical.size();
     double mu = 0.0;
     for (int i = 0; i < 256; ++i) mu += i * double(histogram[i]);
@@ -118,6 +128,7 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
     double mu1 = 0.0, q1 = 0.0, max_sigma = 0.0;
     int threshold = 0;
     for (int i = 0; i < 256; ++i) {
+      if (!histogram[i]) continue;
       const double p_i = histogram[i] * scale;
       mu1 *= q1;
       q1 += p_i;
@@ -185,6 +196,29 @@ namespace {
 // px: markers whose mean side is under this are not tried without cv::aruco's corners (see Decode).
 constexpr float kSettleMinSide = 32.0f;
 
+// Whether point `p` lies strictly inside the quad (cv::pointPolygonTest > 0), its bounding box
+// tested first.
+bool StrictlyInside(const std::array<cv::Point2f, 4>& quad, const cv::Point2f& p) {
+  float x0 = quad[0].x, x1 = x0, y0 = quad[0].y, y1 = y0;
+  for (const auto& c : quad) {
+    x0 = std::min(x0, c.x);
+    x1 = std::max(x1, c.x);
+    y0 = std::min(y0, c.y);
+    y1 = std::max(y1, c.y);
+  }
+  if (!(p.x > x0 && p.x < x1 && p.y > y0 && p.y < y1)) return false;
+  const cv::Mat outline(4, 1, CV_32FC2, const_cast<cv::Point2f*>(quad.data()));
+  return cv::pointPolygonTest(outline, p, false) > 0.0;
+}
+
+// Whether quad `q` lies on the marker read as `marker`: its centre inside the marker when the marker
+// is bigger (one of its cells), the marker's centre inside `q` otherwise (the outline of its quiet
+// zone, or the marker itself at another level).
+bool OnMarker(const Quad& q, const Quad& marker) {
+  return marker.area > q.area ? StrictlyInside(marker.corners, Centre(q.corners))
+                              : StrictlyInside(q.corners, Centre(marker.corners));
+}
+
 // Decodes a small quad cv::aruco's reading rejected (`decoded` and `id` set on success). At this
 // size a one-pixel difference of the contour flips cells of its 4-px-per-cell reading, and
 // cv::aruco's windows (3, 13, 23 px) trace slightly different contours than this search's: those
@@ -236,35 +270,57 @@ bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const
 std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads, const DetectorConfig& config,
                           const cv::aruco::Dictionary& dictionary, const cv::aruco::DetectorParameters& p) {
   const cv::Mat& grey = pyramid.images[0];
-  std::vector<int> ids(quads.size(), -1);
+  const size_t n = quads.size();
+  std::vector<int> ids(n, -1);
   std::vector<Quad> decoded(quads);
-  std::vector<char> second_chance(quads.size(), 0);
-  cv::parallel_for_(cv::Range(0, static_cast<int>(quads.size())), [&](const cv::Range& range) {
-    for (int i = range.start; i < range.end; ++i) {
-      int id = -1, rotation = 0;
-      if (!Identify(grey, quads[i].corners, dictionary, p, id, rotation)) continue;
-      auto& corners = decoded[i].corners;
-      std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
-      ids[i] = id;
+  std::vector<char> second_chance(n, 0);
+  std::vector<size_t> read;  // quads read so far
+  const auto on_read_marker = [&](size_t i) {
+    return std::any_of(read.begin(), read.end(), [&](size_t k) { return OnMarker(quads[i], decoded[k]); });
+  };
+  // Read in waves: the finest level first, and within a level the biggest quads first (area bands
+  // of a factor 16, so a marker's cells, under 1/16 of its area, come after it). A quad on a marker
+  // an earlier wave read (its cells, the same marker at a coarser level) is not read: measured on the
+  // 640x480 20-marker renders, 126 of the 263 quads that failed to read were such cells, and a
+  // marker read at level 0 was read again at level 1. Skipping them changes no result: a coarser
+  // copy that read would lose to the finer one below, and a cell is no marker.
+  std::vector<size_t> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  const auto wave = [&](size_t i) {
+    return std::make_pair(quads[i].level, -std::ilogb(std::max(quads[i].area, 1.0f)) / 4);
+  };
+  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return std::make_pair(wave(a), a) < std::make_pair(wave(b), b); });
+  std::vector<size_t> batch;
+  for (size_t first = 0; first < n;) {
+    size_t last = first;
+    while (last < n && wave(order[last]) == wave(order[first])) ++last;
+    batch.clear();
+    for (size_t k = first; k < last; ++k) {
+      if (!on_read_marker(order[k])) batch.push_back(order[k]);
     }
-  });
-  // Small quads left over, except the cells of markers already read and the outlines around them
-  // (their quiet zones): every marker of a few cells per side has several, and a second look at
-  // each costs more than the search.
+    cv::parallel_for_(cv::Range(0, static_cast<int>(batch.size())), [&](const cv::Range& range) {
+      for (int b = range.start; b < range.end; ++b) {
+        const size_t i = batch[b];
+        int id = -1, rotation = 0;
+        if (!Identify(grey, quads[i].corners, dictionary, p, id, rotation)) continue;
+        auto& corners = decoded[i].corners;
+        std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
+        ids[i] = id;
+      }
+    });
+    for (const size_t i : batch) {
+      if (ids[i] >= 0) read.push_back(i);
+    }
+    first = last;
+  }
+  // Small quads left over, except the cells of markers read and the outlines around them (their
+  // quiet zones): every marker of a few cells per side has several, and a second look at each costs
+  // more than the search.
   std::vector<int> fragile;
-  for (size_t i = 0; i < quads.size(); ++i) {
-    if (ids[i] >= 0 || !(MeanSide(quads[i].corners) < kSmallCandidateMaxSide)) continue;
-    const cv::Point2f centre = Centre(quads[i].corners);
-    const std::vector<cv::Point2f> outline(quads[i].corners.begin(), quads[i].corners.end());
-    bool overlaps = false;
-    for (size_t k = 0; k < quads.size() && !overlaps; ++k) {
-      if (ids[k] < 0) continue;
-      const auto& c = decoded[k].corners;
-      overlaps = decoded[k].area > quads[i].area
-                     ? cv::pointPolygonTest(std::vector<cv::Point2f>(c.begin(), c.end()), centre, false) > 0.0
-                     : cv::pointPolygonTest(outline, Centre(c), false) > 0.0;
+  for (size_t i = 0; i < n; ++i) {
+    if (ids[i] < 0 && MeanSide(quads[i].corners) < kSmallCandidateMaxSide && !on_read_marker(i)) {
+      fragile.push_back(static_cast<int>(i));
     }
-    if (!overlaps) fragile.push_back(static_cast<int>(i));
   }
   // A textured frame leaves hundreds (fuzz_core: 1804 on a 49x96 frame, 0.26 s): the biggest
   // kMaxSmallCandidates get their second look, as in the full path (the test frames leave at most 14).
