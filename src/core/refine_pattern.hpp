@@ -28,7 +28,7 @@ size_t PatternFitEvaluations();
 /// more is taken without evaluating the cost where it lands, and ends the fit: kColdLastStep from
 /// the edge fit's corners, kCarriedLastStep from a start already at about the fit's accuracy (a
 /// tracked marker's edge fit moved by last frame's fit offset).
-inline constexpr double kColdLastStep = 0.01;
+inline constexpr double kColdLastStep = 0.02;
 inline constexpr double kCarriedLastStep = 0.1;
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
                                 float& blur_variance, double last_step);
