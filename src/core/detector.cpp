@@ -10,6 +10,7 @@
 #include "decode_small.hpp"
 #include "fast_detect.hpp"
 #include "geometry.hpp"
+#include "identify.hpp"
 #include "refine_corner.hpp"
 #include "refine_edges.hpp"
 #include "refine_pattern.hpp"
@@ -34,11 +35,6 @@ const std::vector<std::string> kDictionaryNames = {
 // 197 windows), so only configs that would stall detection are refused.
 constexpr int kMaxThresholdWindow = 1001;
 constexpr int kMaxThresholdWindows = 200;
-// Bound on the side of a candidate unwarped for decoding (px): twice what dynamic_reconfigure allows
-// with a 7x7 dictionary and one border bit (9 cells of 20 px). Every candidate of a frame is unwarped:
-// at 1440 px (8 times) a frame of a few hundred candidates took 35-60 ms in the release build, 4-6 s
-// under the fuzzer's sanitizers (fuzz_config).
-constexpr long long kMaxUnwarpedSide = 360;
 // Bound on the perimeter rates (perimeter / the frame's longer side): twice what dynamic_reconfigure
 // allows (8). A quad inside the frame is at most 4 longer sides around, so any rate past 4 already
 // means "no limit"; past the bound, rate * side overflows the detectors' int perimeters
@@ -184,9 +180,9 @@ Detector::Detector(const DetectorConfig& config) : config_(config), tracking_(st
   // bits (fuzz_config: 328 cells of 98 px asked for 1 GB per candidate).
   const long long unwarped_side =
       (dictionary_->markerSize + 2LL * config_.marker_border_bits) * config_.perspective_remove_pixel_per_cell;
-  Require(unwarped_side <= kMaxUnwarpedSide, "perspective_remove_pixel_per_cell",
+  Require(unwarped_side <= internal::kMaxUnwarpedSide, "perspective_remove_pixel_per_cell",
           "times the marker's cells (" + config_.dictionary + " with marker_border_bits) must be <= " +
-              std::to_string(kMaxUnwarpedSide) + " px");
+              std::to_string(internal::kMaxUnwarpedSide) + " px");
   parameters_ = cv::aruco::DetectorParameters::create();
   auto& p = *parameters_;
   p.adaptiveThreshWinSizeMin = config_.adaptive_thresh_win_size_min;

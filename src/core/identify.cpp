@@ -16,6 +16,7 @@
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <numeric>
 #include <utility>
 
@@ -62,6 +63,33 @@ uint64_t PackBits(const unsigned char* bits, int count) {
   return packed;
 }
 
+// Where the pixels of one canonical row come from: the offset of the source pixel in the frame, or
+// -1 outside it (warpPerspective's constant border). (x0 + dx x, y0 + dy x) / (w0 + dw x) rounded to
+// the nearest pixel in warpPerspective's INTER_NEAREST arithmetic (double, no fused multiply-add,
+// 1 / 0 taken as 0, cvRound's ties to even), four pixels at a time: adding and subtracting
+// 1.5 * 2^52 rounds a double under 2^51 to the nearest integer, ties to even, as cvRound's
+// conversion does, and anything larger is far outside the frame either way.
+typedef double Double4 __attribute__((vector_size(4 * sizeof(double))));
+typedef int Int4 __attribute__((vector_size(4 * sizeof(int))));
+
+// `offsets` holds size rounded up to whole vectors of four.
+ARUCOTAG_VECTOR_CLONES __attribute__((optimize("fp-contract=off"))) void CanonicalRowSources(
+    double x0, double y0, double w0, double dx, double dy, double dw, int size, int cols, int rows, int step,
+    int* offsets) {
+  constexpr double kRound = 6755399441055744.0;
+  const double last_x = cols - 1, last_y = rows - 1, row = step;
+  for (int x = 0; x < size; x += 4) {
+    const Double4 at = x + Double4{0.0, 1.0, 2.0, 3.0};
+    const Double4 w = w0 + dw * at;
+    const Double4 inverse = 1.0 / (w != 0.0 ? w : HUGE_VAL);
+    const Double4 sx = ((x0 + dx * at) * inverse + kRound) - kRound;
+    const Double4 sy = ((y0 + dy * at) * inverse + kRound) - kRound;
+    const auto inside = (sx >= 0.0) & (sx <= last_x) & (sy >= 0.0) & (sy <= last_y);
+    const Int4 offset = __builtin_convertvector(inside ? sy * row + sx : -1.0, Int4);
+    std::memcpy(offsets + x, &offset, sizeof offset);
+  }
+}
+
 // cv::aruco's _extractBits + _getBorderErrors + Dictionary::identify for a black marker, without
 // its per-candidate allocations: the canonical image is sampled straight from the homography
 // (nearest pixel, as warpPerspective INTER_NEAREST; outside the frame reads 0 like its constant
@@ -76,24 +104,21 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   const int cell = p.perspectiveRemovePixelPerCell;
   const int margin = static_cast<int>(p.perspectiveRemoveIgnoredMarginPerCell * cell);
   const int size = with_borders * cell;
+  if (size > kMaxUnwarpedSide) return false;  // a configuration Detector refuses
   // Canonical pixel (x, y) is (u, v) = (x, y) / (size - 1) of the unit square.
   const cv::Matx33d h = SquareToQuad(corners) * cv::Matx33d(1.0 / (size - 1), 0, 0, 0, 1.0 / (size - 1), 0, 0, 0, 1);
   thread_local std::vector<uchar> canonical;
   canonical.resize(static_cast<size_t>(size) * size);
-  const int cols = grey.cols, rows = grey.rows;
   const uchar* pixels = grey.data;
-  const size_t step = grey.step;
   // The histogram for Otsu's threshold is counted as the pixels are read.
   int histogram[256] = {0};
+  int offsets[kMaxUnwarpedSide + 3];  // whole vectors of four
   for (int y = 0; y < size; ++y) {
-    const double x0 = h(0, 1) * y + h(0, 2), y0 = h(1, 1) * y + h(1, 2), w0 = h(2, 1) * y + h(2, 2);
+    CanonicalRowSources(h(0, 1) * y + h(0, 2), h(1, 1) * y + h(1, 2), h(2, 1) * y + h(2, 2), h(0, 0), h(1, 0), h(2, 0),
+                        size, grey.cols, grey.rows, static_cast<int>(grey.step), offsets);
     uchar* out = &canonical[static_cast<size_t>(y) * size];
     for (int x = 0; x < size; ++x) {
-      double w = w0 + h(2, 0) * x;
-      w = w ? 1.0 / w : 0.0;
-      const int sx = cvRound((x0 + h(0, 0) * x) * w);
-      const int sy = cvRound((y0 + h(1, 0) * x) * w);
-      out[x] = (unsigned(sx) < unsigned(cols) && unsigned(sy) < unsigned(rows)) ? pixels[sy * step + sx] : 0;
+      out[x] = offsets[x] >= 0 ? pixels[offsets[x]] : 0;
       ++histogram[out[x]];
     }
   }

@@ -2,6 +2,7 @@
 // (cv::aruco::detectMarkers with the same configuration): same ids and corners on the real photos,
 // and tracking that restricts where a frame is searched, not what is found there.
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <map>
 #include <set>
@@ -10,6 +11,7 @@
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
 
+#include "identify.hpp"
 #include "refine_edges.hpp"
 #include "scene.hpp"
 
@@ -56,6 +58,53 @@ const std::vector<Photo> kPhotos = {
     {"ubiquity_fiducials/tag_01_d7_14cm.png", "DICT_5X5_1000", 1},
     {"ubiquity_fiducials/tag_245-246_d7_14cm.png", "DICT_5X5_1000", 2},
 };
+
+// The canonical image's sampling, four pixels at a time, against warpPerspective's INTER_NEAREST
+// arithmetic one pixel at a time (double, cvRound, 1 / 0 taken as 0): the same pixel for every
+// canonical pixel of random candidates in and around the frame, of rows that end exactly half-way
+// between pixels (cvRound's ties), of w through 0 and of coordinates past int's range.
+TEST(FastPath, CanonicalSamplingMatchesWarpPerspectivesRounding) {
+  const int cols = 640, rows = 480, step = 704;
+  const auto reference = [&](double x0, double y0, double w0, double dx, double dy, double dw, int x) {
+    double w = w0 + dw * x;
+    w = w ? 1.0 / w : 0.0;
+    const int sx = cvRound((x0 + dx * x) * w), sy = cvRound((y0 + dy * x) * w);
+    return unsigned(sx) < unsigned(cols) && unsigned(sy) < unsigned(rows) ? sy * step + sx : -1;
+  };
+  cv::RNG rng(14);
+  int compared = 0, inside = 0, ties = 0;
+  for (int trial = 0; trial < 20000; ++trial) {
+    const int size = 1 + trial % 40;
+    double x0 = rng.uniform(-100.0, 740.0), y0 = rng.uniform(-100.0, 580.0), w0 = rng.uniform(0.5, 1.5);
+    double dx = rng.uniform(-3.0, 3.0), dy = rng.uniform(-3.0, 3.0), dw = rng.uniform(-0.01, 0.01);
+    switch (trial % 5) {
+      case 0:  // half-pixel steps from a half-pixel start: every other pixel a tie
+        x0 = std::floor(x0) + 0.5, y0 = std::floor(y0) + 0.5, w0 = 1.0, dw = 0.0, dx = 0.5, dy = -0.5;
+        break;
+      case 1:  // w crosses 0 inside the row
+        w0 = 0.02 * size, dw = -0.04;
+        break;
+      case 2:  // far past int's range
+        x0 *= 1e12, y0 *= -1e9;
+        break;
+      default:
+        break;
+    }
+    int offsets[44];
+    internal::CanonicalRowSources(x0, y0, w0, dx, dy, dw, size, cols, rows, step, offsets);
+    for (int x = 0; x < size; ++x) {
+      const int expected = reference(x0, y0, w0, dx, dy, dw, x);
+      ASSERT_EQ(offsets[x], expected) << "trial " << trial << " x " << x;
+      ++compared;
+      inside += expected >= 0;
+      const double fx = (x0 + dx * x) / (w0 + dw * x);
+      ties += expected >= 0 && fx - std::floor(fx) == 0.5;
+    }
+  }
+  std::printf("%d canonical pixels, %d inside the frame, %d on a tie\n", compared, inside, ties);
+  EXPECT_GT(inside, compared / 4);
+  EXPECT_GT(ties, 1000);
+}
 
 // The default refinement (edge fit) and cv::aruco's sub-pixel one, both supported by the fast path.
 TEST(FastPath, RealPhotosSameIdsAndCornersAsTheFullSearch) {
