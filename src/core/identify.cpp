@@ -72,18 +72,27 @@ uint64_t PackBits(const unsigned char* bits, int count) {
 typedef double Double4 __attribute__((vector_size(4 * sizeof(double))));
 typedef int Int4 __attribute__((vector_size(4 * sizeof(int))));
 
+// Products and sums stay separate roundings: GCC is told not to fuse them (it would across
+// statements), and each is its own statement for compilers that fuse within one.
+#if defined(__GNUC__) && !defined(__clang__)
+#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD __attribute__((optimize("fp-contract=off")))
+#else
+#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD
+#endif
+
 // `offsets` holds size rounded up to whole vectors of four.
-ARUCOTAG_VECTOR_CLONES __attribute__((optimize("fp-contract=off"))) void CanonicalRowSources(
-    double x0, double y0, double w0, double dx, double dy, double dw, int size, int cols, int rows, int step,
-    int* offsets) {
+ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CanonicalRowSources(double x0, double y0, double w0, double dx,
+                                                                              double dy, double dw, int size, int cols,
+                                                                              int rows, int step, int* offsets) {
   constexpr double kRound = 6755399441055744.0;
   const double last_x = cols - 1, last_y = rows - 1, row = step;
   for (int x = 0; x < size; x += 4) {
     const Double4 at = x + Double4{0.0, 1.0, 2.0, 3.0};
-    const Double4 w = w0 + dw * at;
+    const Double4 dw_at = dw * at, dx_at = dx * at, dy_at = dy * at;
+    const Double4 w = w0 + dw_at;
     const Double4 inverse = 1.0 / (w != 0.0 ? w : HUGE_VAL);
-    const Double4 sx = ((x0 + dx * at) * inverse + kRound) - kRound;
-    const Double4 sy = ((y0 + dy * at) * inverse + kRound) - kRound;
+    const Double4 fx = (x0 + dx_at) * inverse, fy = (y0 + dy_at) * inverse;
+    const Double4 sx = (fx + kRound) - kRound, sy = (fy + kRound) - kRound;
     const auto inside = (sx >= 0.0) & (sx <= last_x) & (sy >= 0.0) & (sy <= last_y);
     const Int4 offset = __builtin_convertvector(inside ? sy * row + sx : -1.0, Int4);
     std::memcpy(offsets + x, &offset, sizeof offset);
