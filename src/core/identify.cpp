@@ -81,9 +81,10 @@ typedef int Int4 __attribute__((vector_size(4 * sizeof(int))));
 #endif
 
 // `offsets` holds size rounded up to whole vectors of four.
-ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CanonicalRowSources(double x0, double y0, double w0, double dx,
-                                                                              double dy, double dw, int size, int cols,
-                                                                              int rows, int step, int* offsets) {
+ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CanonicalRowSources(double x0, double y0, double w0,
+                                                                              double dx, double dy, double dw, int size,
+                                                                              int cols, int rows, int step,
+                                                                              int* offsets) {
   constexpr double kRound = 6755399441055744.0;
   const double last_x = cols - 1, last_y = rows - 1, row = step;
   for (int x = 0; x < size; x += 4) {
@@ -323,7 +324,8 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   const auto wave = [&](size_t i) {
     return std::make_pair(quads[i].level, -std::ilogb(std::max(quads[i].area, 1.0f)) / 4);
   };
-  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return std::make_pair(wave(a), a) < std::make_pair(wave(b), b); });
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return std::make_pair(wave(a), a) < std::make_pair(wave(b), b); });
   std::vector<size_t> batch;
   for (size_t first = 0; first < n;) {
     size_t last = first;
