@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <numeric>
 #include <vector>
@@ -22,8 +23,6 @@ namespace arucotag::internal {
 
 namespace {
 
-// Sub-pixel samples per pixel and axis when measuring how much of each pixel each cell covers.
-constexpr int kCoverageSamples = 4;
 // Pixels whose centre lies within this many cells outside the black square take part in the cell
 // estimate (they see its edge cells); the quiet zone they also cover is one more unknown.
 constexpr double kCoverageMarginCells = 0.5;
@@ -161,17 +160,12 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
         touched[touches++] = whole;
         weight[whole] = 1.0;
       } else {
-        const cv::Point2d p00 = g[0], dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
-        for (int j = 0; j < kCoverageSamples; ++j) {
-          const double fy = (j + 0.5) / kCoverageSamples;
-          const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
-          for (int i = 0; i < kCoverageSamples; ++i) {
-            const cv::Point2d s = row + step * ((i + 0.5) / kCoverageSamples);
-            const int cx = FloorInt(s.x), cy = FloorInt(s.y);
-            const int k = (cx >= 0 && cy >= 0 && cx < n && cy < n) ? cy * n + cx : n * n;
-            if (weight[k] == 0.0) touched[touches++] = k;
-            weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
-          }
+        const cv::Point2d dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
+        int sample_cells[kCoverageSamples * kCoverageSamples];
+        CoverageSampleCells(g[0], dx, dy, dxy, n, sample_cells);
+        for (const int k : sample_cells) {
+          if (weight[k] == 0.0) touched[touches++] = k;
+          weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
         }
       }
       const double value = grey.at<uchar>(y, x);
@@ -531,6 +525,31 @@ std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<s
     markers.push_back(marker);
   }
   return markers;
+}
+
+ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CoverageSampleCells(const cv::Point2d& p00,
+                                                                              const cv::Point2d& dx,
+                                                                              const cv::Point2d& dy,
+                                                                              const cv::Point2d& dxy, int n,
+                                                                              int* cells) {
+  static_assert(kCoverageSamples == 4, "a row of samples is one vector");
+  const Double4 along = {0.125, 0.375, 0.625, 0.875};  // (i + 0.5) / 4, exact
+  const double side = n;
+  for (int j = 0; j < kCoverageSamples; ++j) {
+    const double fy = (j + 0.5) / kCoverageSamples;
+    const double down_x = dy.x * fy, down_y = dy.y * fy, bend_x = dxy.x * fy, bend_y = dxy.y * fy;
+    const double row_x = p00.x + down_x, row_y = p00.y + down_y;
+    const double step_x = dx.x + bend_x, step_y = dx.y + bend_y;
+    const Double4 offset_x = step_x * along, offset_y = step_y * along;
+    const Double4 x = row_x + offset_x, y = row_y + offset_y;
+    // floor(x) in [0, n) exactly when x is, and there floor is truncation; NaN is outside.
+    const auto inside = (x >= 0.0) & (x < side) & (y >= 0.0) & (y < side);
+    const Double4 cx = __builtin_convertvector(__builtin_convertvector(inside ? x : 0.0, Int4), Double4);
+    const Double4 cy = __builtin_convertvector(__builtin_convertvector(inside ? y : 0.0, Int4), Double4);
+    const Double4 row_start = cy * side;
+    const Int4 cell = __builtin_convertvector(inside ? row_start + cx : side * side, Int4);
+    std::memcpy(cells + j * kCoverageSamples, &cell, sizeof cell);
+  }
 }
 
 bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs) {

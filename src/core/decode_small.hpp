@@ -31,6 +31,19 @@ constexpr size_t kMaxSmallCandidates = 96;
 /// such quads of 1-3 px, of 77 candidates).
 inline bool SmallCandidateSide(float side, int cells) { return side >= cells && side < kSmallCandidateMaxSide; }
 
+/// Sub-pixel samples per pixel and axis when the small-marker decoder measures how much of each
+/// pixel each cell covers.
+constexpr int kCoverageSamples = 4;
+
+/// The cells of a pixel's kCoverageSamples^2 samples, row by row, into `cells`: cy * n + cx, or n * n
+/// outside the n x n square. The pixel's corners, in cell coordinates, are p00, p00 + dx, p00 + dy and
+/// p00 + dx + dy + dxy; sample (i, j) is row + step * fx, with fx = (i + 0.5) / kCoverageSamples,
+/// row = p00 + dy * fy, step = dx + dxy * fy and fy likewise. Computed four samples at a time in the
+/// double arithmetic of that formula, one rounding per product and sum, so each lands in the cell
+/// the scalar formula (with floor) gives.
+void CoverageSampleCells(const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy, const cv::Point2d& dxy,
+                         int n, int* cells);
+
 /// Solves normal * x = rhs (CV_64F, normal symmetric positive definite, rhs one column) as
 /// cv::solve(DECOMP_CHOLESKY) does, visiting only each row's envelope (from its first non-zero on):
 /// the cell estimate's normal matrix couples each cell with its neighbours alone, so this costs a

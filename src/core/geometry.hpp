@@ -18,6 +18,15 @@
 #else
 #define ARUCOTAG_VECTOR_CLONES
 #endif
+// Products and sums stay separate roundings in a function marked so, as in the default build, when
+// it is also built for AVX2: GCC is told not to fuse them into FMAs (it would across statements),
+// and each product is its own statement for compilers that fuse within one. Its results are then
+// the same in both builds, and the same as a scalar loop's.
+#if defined(__GNUC__) && !defined(__clang__)
+#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD __attribute__((optimize("fp-contract=off")))
+#else
+#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD
+#endif
 // Helpers of those loops are inlined into them, so that each clone has its own build of them.
 #if defined(__GNUC__)
 #define ARUCOTAG_INLINE __attribute__((always_inline)) inline
@@ -26,6 +35,11 @@
 #endif
 
 namespace arucotag::internal {
+
+// Four doubles or ints as one value (GCC's and Clang's vector extension): one AVX register, or two
+// SSE2 ones.
+typedef double Double4 __attribute__((vector_size(4 * sizeof(double))));
+typedef int Int4 __attribute__((vector_size(4 * sizeof(int))));
 
 /// Homography of the unit square onto a quad: (0,0)->q0, (1,0)->q1, (1,1)->q2, (0,1)->q3, in closed
 /// form (Heckbert), as the 3x3 matrix [a b c; d e f; g h 1] applied to (u, v, 1). A quad whose

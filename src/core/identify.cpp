@@ -68,18 +68,8 @@ uint64_t PackBits(const unsigned char* bits, int count) {
 // the nearest pixel in warpPerspective's INTER_NEAREST arithmetic (double, no fused multiply-add,
 // 1 / 0 taken as 0, cvRound's ties to even), four pixels at a time: adding and subtracting
 // 1.5 * 2^52 rounds a double under 2^51 to the nearest integer, ties to even, as cvRound's
-// conversion does, and anything larger is far outside the frame either way.
-typedef double Double4 __attribute__((vector_size(4 * sizeof(double))));
-typedef int Int4 __attribute__((vector_size(4 * sizeof(int))));
-
-// Products and sums stay separate roundings: GCC is told not to fuse them (it would across
-// statements), and each is its own statement for compilers that fuse within one.
-#if defined(__GNUC__) && !defined(__clang__)
-#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD __attribute__((optimize("fp-contract=off")))
-#else
-#define ARUCOTAG_NO_FUSED_MULTIPLY_ADD
-#endif
-
+// conversion does, and anything larger is far outside the frame either way. Each product is its
+// own statement (ARUCOTAG_NO_FUSED_MULTIPLY_ADD).
 // `offsets` holds size rounded up to whole vectors of four.
 ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CanonicalRowSources(double x0, double y0, double w0,
                                                                               double dx, double dy, double dw, int size,

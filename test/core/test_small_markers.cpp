@@ -1,7 +1,9 @@
 // Recall of tiny markers (9-22 px) and the second-chance decoder's false positives: a 0.15 m
 // DICT_4X4_50 marker seen by the rover camera at 7-12 m, tilted up to 60 degrees.
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -78,6 +80,68 @@ TEST(SmallMarkers, EnvelopeSolverMatchesOpenCvCholesky) {
   cv::Mat b = cv::Mat::ones(4, 1, CV_64F), unused;
   EXPECT_FALSE(cv::solve(indefinite, b, unused, cv::DECOMP_CHOLESKY));
   EXPECT_FALSE(internal::SolveEnvelope(indefinite, b));
+}
+
+// The cell estimate's coverage samples, four at a time, against the formula one sample at a time
+// with floor: the same cell for every sample, including samples exactly on a cell line, just either
+// side of one (one ulp), outside the square on each side, and past int's range. Truncation instead
+// of floor, or a sample's products fused, moves samples across a line and fails it.
+TEST(SmallMarkers, CoverageSamplesLandInTheScalarFormulasCells) {
+  const auto expected_cell = [](const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy,
+                                const cv::Point2d& dxy, int n, int i, int j) {
+    const double fy = (j + 0.5) / internal::kCoverageSamples, fx = (i + 0.5) / internal::kCoverageSamples;
+    const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
+    const cv::Point2d s = row + step * fx;
+    const double cx = std::floor(s.x), cy = std::floor(s.y);
+    return (cx >= 0 && cy >= 0 && cx < n && cy < n) ? static_cast<int>(cy) * n + static_cast<int>(cx) : n * n;
+  };
+  cv::RNG rng(25);
+  int compared = 0, on_line = 0, outside = 0;
+  for (int trial = 0; trial < 50000; ++trial) {
+    const int n = 4 + trial % 11;
+    const double scale = rng.uniform(0.3, 1.5);  // cells per pixel
+    cv::Point2d p00(rng.uniform(-1.0, n + 0.5), rng.uniform(-1.0, n + 0.5));
+    cv::Point2d dx(scale * rng.uniform(-1.0, 1.0), scale * rng.uniform(-1.0, 1.0));
+    cv::Point2d dy(-dx.y + rng.uniform(-0.1, 0.1), dx.x + rng.uniform(-0.1, 0.1));
+    cv::Point2d dxy(rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01));
+    switch (trial % 6) {
+      case 0:  // axis-aligned, four cells a pixel from half a cell off a line: every sample on a line
+        p00 = cv::Point2d(std::floor(p00.x) - 0.5, std::floor(p00.y) - 0.5);
+        dx = cv::Point2d(4.0, 0.0), dy = cv::Point2d(0.0, 4.0), dxy = cv::Point2d(0.0, 0.0);
+        break;
+      case 1:  // axis-aligned, the first column of samples an ulp either side of a cell line
+        p00.x = std::nextafter(std::floor(p00.x) - 0.0625, trial % 12 < 6 ? -1e9 : 1e9);
+        dx = cv::Point2d(0.5, 0.0), dy = cv::Point2d(0.0, 0.5), dxy = cv::Point2d(0.0, 0.0);
+        break;
+      case 2:  // far outside, past int's range, or not a number
+        p00.x = trial % 18 == 2 ? std::numeric_limits<double>::quiet_NaN() : rng.uniform(-1.0, 1.0) * 1e12;
+        break;
+      case 3: {  // the second sample of each row exactly on the square's left edge after its
+                 // product's rounding; with the product unrounded (a fused multiply-add) either side
+        dy = cv::Point2d(0.0, dy.y), dxy = cv::Point2d(0.0, 0.0);
+        p00.x = -(dx.x * 0.375);
+        break;
+      }
+      default:
+        break;
+    }
+    int cells[internal::kCoverageSamples * internal::kCoverageSamples];
+    internal::CoverageSampleCells(p00, dx, dy, dxy, n, cells);
+    for (int j = 0; j < internal::kCoverageSamples; ++j) {
+      for (int i = 0; i < internal::kCoverageSamples; ++i) {
+        const int expected = expected_cell(p00, dx, dy, dxy, n, i, j);
+        ASSERT_EQ(cells[j * internal::kCoverageSamples + i], expected) << "trial " << trial << " sample " << i << "," << j;
+        ++compared;
+        outside += expected == n * n;
+        const double fy = (j + 0.5) / internal::kCoverageSamples;
+        const double x = (p00.x + dy.x * fy) + (dx.x + dxy.x * fy) * ((i + 0.5) / internal::kCoverageSamples);
+        on_line += x == std::floor(x);
+      }
+    }
+  }
+  std::printf("%d samples, %d outside the square, %d on a cell line\n", compared, outside, on_line);
+  EXPECT_GT(outside, compared / 10);
+  EXPECT_GT(on_line, 10000);
 }
 
 // Every marker plain cv::aruco::detectMarkers finds, the fast path finds too: at these sizes the
