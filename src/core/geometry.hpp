@@ -21,10 +21,10 @@
 #else
 #define ARUCOTAG_VECTOR_CLONES
 #endif
-// Products and sums stay separate roundings in a function marked so, as in the default build, when
-// it is also built for AVX2: GCC is told not to fuse them into FMAs (it would across statements),
-// and each product is its own statement for compilers that fuse within one. Its results are then
-// the same in both builds, and the same as a scalar loop's.
+// Products and sums stay separate roundings in a function marked so, even in a build that enables
+// FMA (the clones above do not, -march=native does): GCC is told not to fuse them (it would across
+// statements), and each product is its own statement for compilers that fuse within one. Its
+// results are then the same as a scalar loop's in every build.
 #if defined(__GNUC__) && !defined(__clang__)
 #define ARUCOTAG_NO_FUSED_MULTIPLY_ADD __attribute__((optimize("fp-contract=off")))
 #else

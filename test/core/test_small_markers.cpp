@@ -83,17 +83,16 @@ TEST(SmallMarkers, EnvelopeSolverMatchesOpenCvCholesky) {
 }
 
 // The cell estimate's coverage samples, four at a time, against the formula one sample at a time
-// with floor: the same cell for every sample, including samples exactly on a cell line, just either
-// side of one (one ulp), outside the square on each side, and past int's range. Truncation instead
-// of floor, or a sample's products fused, moves samples across a line and fails it.
+// with floor: the same cell for every sample, including samples exactly on a cell line, an ulp
+// either side of one, outside the square on each side, NaN and past int's range. A bounds test that
+// truncates (x > -1 for x >= 0) puts samples just left of the square inside it and fails.
 TEST(SmallMarkers, CoverageSamplesLandInTheScalarFormulasCells) {
-  const auto expected_cell = [](const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy,
-                                const cv::Point2d& dxy, int n, int i, int j) {
+  // Sample (i, j) of the pixel with corners p00, p00 + dx, p00 + dy, p00 + dx + dy + dxy.
+  const auto sample = [](const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy,
+                         const cv::Point2d& dxy, int i, int j) {
     const double fy = (j + 0.5) / internal::kCoverageSamples, fx = (i + 0.5) / internal::kCoverageSamples;
     const cv::Point2d row = p00 + dy * fy, step = dx + dxy * fy;
-    const cv::Point2d s = row + step * fx;
-    const double cx = std::floor(s.x), cy = std::floor(s.y);
-    return (cx >= 0 && cy >= 0 && cx < n && cy < n) ? static_cast<int>(cy) * n + static_cast<int>(cx) : n * n;
+    return row + step * fx;
   };
   cv::RNG rng(25);
   int compared = 0, on_line = 0, outside = 0;
@@ -116,12 +115,10 @@ TEST(SmallMarkers, CoverageSamplesLandInTheScalarFormulasCells) {
       case 2:  // far outside, past int's range, or not a number
         p00.x = trial % 18 == 2 ? std::numeric_limits<double>::quiet_NaN() : rng.uniform(-1.0, 1.0) * 1e12;
         break;
-      case 3: {  // the second sample of each row exactly on the square's left edge after its
-                 // product's rounding; with the product unrounded (a fused multiply-add) either side
+      case 3:  // the second sample of each row exactly on the square's left edge (x = -p + p)
         dy = cv::Point2d(0.0, dy.y), dxy = cv::Point2d(0.0, 0.0);
         p00.x = -(dx.x * 0.375);
         break;
-      }
       default:
         break;
     }
@@ -129,13 +126,14 @@ TEST(SmallMarkers, CoverageSamplesLandInTheScalarFormulasCells) {
     internal::CoverageSampleCells(p00, dx, dy, dxy, n, cells);
     for (int j = 0; j < internal::kCoverageSamples; ++j) {
       for (int i = 0; i < internal::kCoverageSamples; ++i) {
-        const int expected = expected_cell(p00, dx, dy, dxy, n, i, j);
+        const cv::Point2d s = sample(p00, dx, dy, dxy, i, j);
+        const double cx = std::floor(s.x), cy = std::floor(s.y);
+        const int expected =
+            (cx >= 0 && cy >= 0 && cx < n && cy < n) ? static_cast<int>(cy) * n + static_cast<int>(cx) : n * n;
         ASSERT_EQ(cells[j * internal::kCoverageSamples + i], expected) << "trial " << trial << " sample " << i << "," << j;
         ++compared;
         outside += expected == n * n;
-        const double fy = (j + 0.5) / internal::kCoverageSamples;
-        const double x = (p00.x + dy.x * fy) + (dx.x + dxy.x * fy) * ((i + 0.5) / internal::kCoverageSamples);
-        on_line += x == std::floor(x);
+        on_line += s.x == cx;
       }
     }
   }
