@@ -250,6 +250,7 @@ class PatternFit {
   void Cover(const std::array<Vec2, 4>& corners) {
     if (covered_ && corners == covered_corners_) return;  // the start is covered twice otherwise
     covered_ = true;
+    blurred_ = false;
     covered_corners_ = corners;
     const int n = cells_ + 1;
     GridVertices(corners, origin_, cells_, vertices_);
@@ -296,26 +297,37 @@ class PatternFit {
   // along columns on the rows that hold samples; the corner derivatives, non-zero only on the pixels
   // a cell boundary crosses, are scattered along rows from those pixels alone and blurred along
   // columns only at the samples.
+  // The start's brightness-and-contrast fit and the first normal equations blur the same coverage with
+  // the same kernel: the second time copies the first's result.
   ARUCOTAG_VECTOR_CLONES void Blurred(double variance, std::vector<float>& cover, std::vector<float>* jac) {
-    const Kernel kernel = BlurKernel(variance);
+    if (!(variance == kernel_variance_)) {
+      kernel_ = BlurKernel(variance);
+      kernel_variance_ = variance;
+      blurred_ = false;
+    }
+    const Kernel& kernel = kernel_;
     const int r = kernel.radius;
     std::array<float, 2 * kBlurRadius + 1> taps;
     for (int k = 0; k < 2 * kBlurRadius + 1; ++k) taps[k] = static_cast<float>(kernel.taps[k]);
     const float* tap = taps.data() + kBlurRadius;  // tap[k], k in [-r, r]
     const int width = roi_.width;
     const size_t n = samples_.size();
-    Buffer(cover, n);
-    Buffer(rows_, static_cast<size_t>(roi_.area()));
-    ZeroedBuffer(padded_, static_cast<size_t>(width + 2 * kBlurRadius));
-    Buffer(column_, static_cast<size_t>(width));
-    static_assert(kBlurRadius == 5, "one case per kernel radius");
-    switch (r) {  // the taps unrolled
-      case 1: BlurCoverage<1>(tap, cover); break;
-      case 2: BlurCoverage<2>(tap, cover); break;
-      case 3: BlurCoverage<3>(tap, cover); break;
-      case 4: BlurCoverage<4>(tap, cover); break;
-      default: BlurCoverage<kBlurRadius>(tap, cover); break;
+    if (!blurred_) {
+      Buffer(blurred_cover_, n);
+      Buffer(rows_, static_cast<size_t>(roi_.area()));
+      ZeroedBuffer(padded_, static_cast<size_t>(width + 2 * kBlurRadius));
+      Buffer(column_, static_cast<size_t>(width));
+      static_assert(kBlurRadius == 5, "one case per kernel radius");
+      switch (r) {  // the taps unrolled
+        case 1: BlurCoverage<1>(tap, blurred_cover_); break;
+        case 2: BlurCoverage<2>(tap, blurred_cover_); break;
+        case 3: BlurCoverage<3>(tap, blurred_cover_); break;
+        case 4: BlurCoverage<4>(tap, blurred_cover_); break;
+        default: BlurCoverage<kBlurRadius>(tap, blurred_cover_); break;
+      }
+      blurred_ = true;
     }
+    std::copy_n(blurred_cover_.data(), n, Buffer(cover, n));
     if (!jac) return;
     ZeroedBuffer(slope_rows_, static_cast<size_t>(roi_.area()) * kSlopes);
     for (const int at : boundary_) {
@@ -544,6 +556,10 @@ class PatternFit {
   Vec2 origin_;
   double area_ = 0.0;
   bool covered_ = false;
+  // The last kernel and whether blurred_cover_ holds the coverage blurred by it (Blurred).
+  double kernel_variance_ = std::numeric_limits<double>::quiet_NaN();
+  Kernel kernel_;
+  bool blurred_ = false;
   std::array<Vec2, 4> covered_corners_;
   cv::Rect roi_;  // coverage area, image coordinates (may reach past the image)
   // Per-thread scratch reused across fits: the coverage planes of a 56 px marker are a few hundred
@@ -552,7 +568,7 @@ class PatternFit {
     std::vector<Sample> samples;
     std::vector<Vec2> vertices, plus, minus;
     std::vector<float> vertex_jac;  // per grid vertex: d x / d corners (8), d y / d corners (8)
-    std::vector<float> coverage, slopes, rows, slope_rows, padded, column;
+    std::vector<float> coverage, slopes, rows, slope_rows, padded, column, blurred_cover;
     std::vector<uchar> on_boundary;
     std::vector<int> boundary;
   };
@@ -570,7 +586,7 @@ class PatternFit {
   std::vector<uchar>& on_boundary_ = scratch_.on_boundary;
   std::vector<int>& boundary_ = scratch_.boundary;
   std::vector<float>&rows_ = scratch_.rows, &slope_rows_ = scratch_.slope_rows, &padded_ = scratch_.padded,
-                    &column_ = scratch_.column;
+                    &column_ = scratch_.column, &blurred_cover_ = scratch_.blurred_cover;
 };
 
 // Sum of a[k] * b[k] in float with eight running sums, so the loop vectorises (a single running sum
