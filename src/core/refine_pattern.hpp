@@ -27,9 +27,12 @@ size_t PatternFitEvaluations();
 /// fitted one when it returns true. A Gauss-Newton step that moves no corner by `last_step` px or
 /// more is taken without evaluating the cost where it lands, and ends the fit: kColdLastStep from
 /// the edge fit's corners, kCarriedLastStep from a start already at about the fit's accuracy (a
-/// tracked marker's edge fit moved by last frame's fit offset).
+/// tracked marker's edge fit moved by last frame's fit offset). Measured on the drive-by in video mode
+/// (439 carried fits): at 0.1 px 190 of them needed a second evaluation, and raising the bound to
+/// 0.15 px cut the median frame's instructions by 10 % for a corner error p95 of 0.0599 px against
+/// 0.0588 (median 0.02156 against 0.02153); 0.2 px gave 0.0621, 0.3 px 0.0662.
 inline constexpr double kColdLastStep = 0.02;
-inline constexpr double kCarriedLastStep = 0.1;
+inline constexpr double kCarriedLastStep = 0.15;
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
                                 float& blur_variance, double last_step);
 
