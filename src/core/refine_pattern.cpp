@@ -254,18 +254,31 @@ class PatternFit {
     covered_corners_ = corners;
     const int n = cells_ + 1;
     GridVertices(corners, origin_, cells_, vertices_);
-    // Vertex derivatives by central differences: the grid is a smooth function of the corners.
+    // Vertex derivatives: the homography's by central differences, carried to each vertex
+    // analytically (d p = (dH x - p dH_2 x) / w).
     Buffer(vertex_jac_, vertices_.size() * 16);  // every entry written below
     constexpr double kStep = 1e-4;
+    std::array<Vec2, 4> local;
+    for (int i = 0; i < 4; ++i) local[i] = corners[i] - origin_;
+    const cv::Matx33d h = GridToImage(local, cells_);
+    cv::Matx33d dh[8];
     for (int k = 0; k < 8; ++k) {
-      std::array<Vec2, 4> plus = corners, minus = corners;
+      std::array<Vec2, 4> plus = local, minus = local;
       (k % 2 == 0 ? plus[k / 2].x : plus[k / 2].y) += kStep;
       (k % 2 == 0 ? minus[k / 2].x : minus[k / 2].y) -= kStep;
-      GridVertices(plus, origin_, cells_, plus_);
-      GridVertices(minus, origin_, cells_, minus_);
-      for (size_t i = 0; i < vertices_.size(); ++i) {
-        vertex_jac_[i * 16 + k] = static_cast<float>((plus_[i].x - minus_[i].x) / (2 * kStep));
-        vertex_jac_[i * 16 + 8 + k] = static_cast<float>((plus_[i].y - minus_[i].y) / (2 * kStep));
+      dh[k] = (GridToImage(plus, cells_) - GridToImage(minus, cells_)) * (1.0 / (2 * kStep));
+    }
+    for (int v = 0; v <= cells_; ++v) {
+      for (int u = 0; u <= cells_; ++u) {
+        const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+        const double px = (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, py = (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w;
+        float* out = &vertex_jac_[static_cast<size_t>(v * n + u) * 16];
+        for (int k = 0; k < 8; ++k) {
+          const cv::Matx33d& d = dh[k];
+          const double dw = d(2, 0) * u + d(2, 1) * v + d(2, 2);
+          out[k] = static_cast<float>((d(0, 0) * u + d(0, 1) * v + d(0, 2) - px * dw) / w);
+          out[8 + k] = static_cast<float>((d(1, 0) * u + d(1, 1) * v + d(1, 2) - py * dw) / w);
+        }
       }
     }
     ZeroedBuffer(coverage_, static_cast<size_t>(roi_.area()));
@@ -566,7 +579,7 @@ class PatternFit {
   // kB, and fresh allocations of that size cost page faults on every fit.
   struct Scratch {
     std::vector<Sample> samples;
-    std::vector<Vec2> vertices, plus, minus;
+    std::vector<Vec2> vertices;
     std::vector<float> vertex_jac;  // per grid vertex: d x / d corners (8), d y / d corners (8)
     std::vector<float> coverage, slopes, rows, slope_rows, padded, column, blurred_cover;
     std::vector<uchar> on_boundary;
@@ -578,7 +591,7 @@ class PatternFit {
   }
   Scratch& scratch_ = ThreadScratch();
   std::vector<Sample>& samples_ = scratch_.samples;
-  std::vector<Vec2>&vertices_ = scratch_.vertices, &plus_ = scratch_.plus, &minus_ = scratch_.minus;
+  std::vector<Vec2>& vertices_ = scratch_.vertices;
   std::vector<float>& vertex_jac_ = scratch_.vertex_jac;
   // The coverage plane, and the corner derivatives of the pixels in `boundary_` (the only non-zero
   // ones; `on_boundary_` marks them).
