@@ -141,17 +141,6 @@ cv::Matx33d GridToImage(const std::array<Vec2, 4>& corners, int cells) {
   return internal::SquareToQuad(corners) * cv::Matx33d(k, 0, 0, 0, k, 0, 0, 0, 1);
 }
 
-// The (cells+1)^2 grid vertices for the corners, relative to `origin` (keeps float round-off out).
-void GridVertices(const std::array<Vec2, 4>& corners, const Vec2& origin, int cells, std::vector<Vec2>& out) {
-  std::array<Vec2, 4> local;
-  for (int i = 0; i < 4; ++i) local[i] = corners[i] - origin;
-  const cv::Matx33d h = GridToImage(local, cells);
-  out.resize((cells + 1) * (cells + 1));
-  for (int v = 0; v <= cells; ++v) {
-    for (int u = 0; u <= cells; ++u) out[v * (cells + 1) + u] = internal::ApplyHomography(h, u, v) + origin;
-  }
-}
-
 struct Sample {
   int x, y;
   double grey;
@@ -253,9 +242,10 @@ class PatternFit {
     blurred_ = false;
     covered_corners_ = corners;
     const int n = cells_ + 1;
-    GridVertices(corners, origin_, cells_, vertices_);
-    // Vertex derivatives: the homography's by central differences, carried to each vertex
-    // analytically (d p = (dH x - p dH_2 x) / w).
+    // The (cells+1)^2 grid vertices from the homography of the corners relative to `origin_` (keeps
+    // float round-off out), and their derivatives: the homography's by central differences, carried
+    // to each vertex analytically (d p = (dH x - p dH_2 x) / w).
+    vertices_.resize(static_cast<size_t>(n * n));
     Buffer(vertex_jac_, vertices_.size() * 16);  // every entry written below
     constexpr double kStep = 1e-4;
     std::array<Vec2, 4> local;
@@ -270,14 +260,15 @@ class PatternFit {
     }
     for (int v = 0; v <= cells_; ++v) {
       for (int u = 0; u <= cells_; ++u) {
+        const Vec2 p = internal::ApplyHomography(h, u, v);
+        vertices_[v * n + u] = p + origin_;
         const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
-        const double px = (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, py = (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w;
         float* out = &vertex_jac_[static_cast<size_t>(v * n + u) * 16];
         for (int k = 0; k < 8; ++k) {
           const cv::Matx33d& d = dh[k];
           const double dw = d(2, 0) * u + d(2, 1) * v + d(2, 2);
-          out[k] = static_cast<float>((d(0, 0) * u + d(0, 1) * v + d(0, 2) - px * dw) / w);
-          out[8 + k] = static_cast<float>((d(1, 0) * u + d(1, 1) * v + d(1, 2) - py * dw) / w);
+          out[k] = static_cast<float>((d(0, 0) * u + d(0, 1) * v + d(0, 2) - p.x * dw) / w);
+          out[8 + k] = static_cast<float>((d(1, 0) * u + d(1, 1) * v + d(1, 2) - p.y * dw) / w);
         }
       }
     }
