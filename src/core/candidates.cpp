@@ -268,6 +268,23 @@ std::vector<Quad> MergeQuads(std::vector<Quad> quads, double rate) {
   return merged;
 }
 
+namespace {
+
+// One row of OpenCvQuadsNear's binary image: cv::adaptiveThreshold(MEAN_C, THRESH_BINARY_INV) with a
+// window of `area` pixels whose sums come from an integral image's rows above (`t0`, `t1`: its left
+// and right columns) and below (`b0`, `b1`) it. Vectorised (the box sums need 32 bits).
+ARUCOTAG_VECTOR_CLONES void ThresholdRowFromSums(const int* __restrict t0, const int* __restrict t1,
+                                                 const int* __restrict b0, const int* __restrict b1,
+                                                 const uchar* __restrict in, int width, int delta, int area,
+                                                 uchar* __restrict out) {
+  for (int x = 0; x < width; ++x) {
+    const int sum = b1[x] - b0[x] - t1[x] + t0[x];
+    out[x] = (in[x] + delta) * 2 * area <= 2 * sum + area ? kForeground : kBackground;
+  }
+}
+
+}  // namespace
+
 // The quads cv::aruco's candidate search (every configured threshold window, same contour filters)
 // finds around `corners` (full resolution), run on a small window around them: those whose
 // bounding box matches the quad's within a few pixels, appended to `found`. Box means come from an
@@ -320,21 +337,18 @@ void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const
     const int w = window | 1;  // cv::aruco makes even windows odd
     const int r = w / 2, area = w * w;
     binary.create(roi.height + 2, roi.width + 2, CV_8UC1);
-    binary.setTo(0);
+    // Every pixel inside the 1-pixel frame is written below.
+    binary.row(0).setTo(0);
+    binary.row(roi.height + 1).setTo(0);
     for (int yy = 0; yy < roi.height; ++yy) {
       // Row yy of the region is row yy + reach of the patch; the integral has one more row/column.
       const int* top = sums.ptr<int>(yy + reach - r);
       const int* bottom = sums.ptr<int>(yy + reach + r + 1);
       const uchar* in = patch.ptr<uchar>(yy + reach) + reach;
       uchar* out = binary.ptr<uchar>(yy + 1) + 1;
-      const int* __restrict b0 = bottom + reach - r;
-      const int* __restrict b1 = bottom + reach + r + 1;
-      const int* __restrict t0 = top + reach - r;
-      const int* __restrict t1 = top + reach + r + 1;
-      for (int xx = 0; xx < roi.width; ++xx) {
-        const int sum = b1[xx] - b0[xx] - t1[xx] + t0[xx];
-        out[xx] = (in[xx] + delta) * 2 * area <= 2 * sum + area ? kForeground : kBackground;
-      }
+      out[-1] = out[roi.width] = kBackground;
+      ThresholdRowFromSums(top + reach - r, top + reach + r + 1, bottom + reach - r, bottom + reach + r + 1, in,
+                           roi.width, delta, area, out);
       const auto [lo, hi] = span[yy];
       if (lo <= hi) std::fill(out + std::max(lo, 0), out + std::min(hi, roi.width - 1) + 1, kForeground);
     }
