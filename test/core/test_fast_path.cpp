@@ -209,7 +209,10 @@ TEST(FastPath, NewMarkerFoundWithinTheFullSearchInterval) {
       expected.erase(std::remove_if(expected.begin(), expected.end(), [](const ArucoTag& t) { return t.id == 41; }),
                      expected.end());
     }
-    ExpectSameAsFullSearch(tags, expected, 0.01, "frame " + std::to_string(k));
+    // Tracked markers' fits start from last frame's and the full search's from cold; each ends with
+    // a step it does not confirm (kCarriedLastStep, kColdLastStep), so they agree to about a
+    // hundredth of a pixel (at most 0.012 px here), not exactly.
+    ExpectSameAsFullSearch(tags, expected, 0.02, "frame " + std::to_string(k));
   }
   EXPECT_GE(detector.tracking_stats().tracked_frames, static_cast<unsigned long long>(appear))
       << "tracking never engaged: the test would prove nothing";
