@@ -31,10 +31,12 @@ size_t PatternFitEvaluations();
 /// (439 carried fits): at 0.1 px 190 of them needed a second evaluation, and raising the bound to
 /// 0.15 px cut the median frame's instructions by 10 % for a corner error p95 of 0.0599 px against
 /// 0.0588 (median 0.02156 against 0.02153); 0.2 px gave 0.0621, 0.3 px 0.0662. Cold fits ended at
-/// 0.02 px until stop 30: 0.1 px cut the default detector's time on the real 640x480 photos, 640x480
-/// with 20 markers and tag36h11 by 8-12 % (bench_detect), for corner error medians 0.001-0.002 px
-/// higher on the renders (p95 within 0.01 px; 640x480 with 20 markers 0.092 -> 0.101 px).
-inline constexpr double kColdLastStep = 0.1;
+/// 0.02 px until stop 30. At 0.05 px the default detector's time on the real 640x480 photos, 640x480
+/// with 20 markers, 720p with 5 and tag36h11 fell by 2-12 % (bench_detect), with corner error medians
+/// at most 0.0012 px higher on the renders and p95 the same or lower; bench_pose's flips
+/// unchanged at 1-10 m on two seeds, 2 more of 260 fused ones at 10-15 m on one (where flips are
+/// `ambiguity`'s to report). 0.1 px saved 8-12 % but flipped one more pose at 6-10 m.
+inline constexpr double kColdLastStep = 0.05;
 inline constexpr double kCarriedLastStep = 0.15;
 bool RefineCornersOnPatternFrom(const cv::Mat& grey, const cv::Mat& black, std::array<cv::Point2f, 4>& corners,
                                 float& blur_variance, double last_step);

@@ -395,8 +395,8 @@ TEST(PatternFit, ScratchLeftByOtherFitsChangesNothing) {
 // offset its fit added last frame, and one Gauss-Newton step, taken without a cost evaluation to
 // confirm it, ends the fit. Three moving, turning markers of 25-50 px tilted 40-45 degrees, blurred
 // (1 px) and noisy, over 12 frames: the tracked corners are as close to the truth as each frame's
-// own fit from a cold start, for at most three quarters of its cost evaluations (measured 37 against
-// 54 with kCarriedLastStep at 0.15 px and kColdLastStep at 0.1 px; 39 against 69 with kColdLastStep
+// own fit from a cold start, for at most three quarters of its cost evaluations (measured 38 against
+// 56 with kCarriedLastStep at 0.15 px and kColdLastStep at 0.05 px; 39 against 69 with kColdLastStep
 // at 0.02 px, and 40 against 79 with kCarriedLastStep at 0.1 px before stop 29; 56 when the start is
 // the edge fit alone, whose bias at this tilt and blur is over the 0.1 px a step could move unconfirmed).
 TEST(PatternFit, TrackedFitStartsFromLastFramesOffsetAndTakesOneStep) {
