@@ -6,6 +6,7 @@
 #include "decode_small.hpp"
 
 #include "codes.hpp"
+#include "refine_pattern.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -396,7 +397,7 @@ bool Accept(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int bo
             int id, int rotation, SmallMarker& marker) {
   std::array<cv::Point2f, 4> corners = Corners(square);
   std::rotate(corners.begin(), corners.begin() + 4 - rotation, corners.end());
-  if (!PatternExplainsPixels(grey, dictionary, id, border_bits, corners)) return false;
+  if (!PatternExplainsPixels(grey, dictionary, id, border_bits, corners, &marker.fit)) return false;
   marker.id = id;
   marker.corners = corners;
   return true;
@@ -453,9 +454,16 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
 }
 
 bool PatternExplainsPixels(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int id, int border_bits,
-                           const std::array<cv::Point2f, 4>& corners) {
-  std::array<cv::Point2f, 4> fitted = corners;
-  return RefineCornersOnPattern(grey, MarkerCells(dictionary, id, border_bits), fitted);
+                           const std::array<cv::Point2f, 4>& corners, FittedPattern* fit) {
+  // RefineCornersOnPattern's fit, keeping the blur it finds.
+  FittedPattern fitted;
+  fitted.corners = corners;
+  if (!RefineCornersOnPatternFrom(grey, MarkerCells(dictionary, id, border_bits), fitted.corners, fitted.blur,
+                                  kColdLastStep)) {
+    return false;
+  }
+  if (fit) *fit = fitted;
+  return true;
 }
 
 namespace {

@@ -51,10 +51,19 @@ void CoverageSampleCells(const cv::Point2d& p00, const cv::Point2d& dx, const cv
 /// matrix is not positive definite.
 bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs);
 
+/// The pattern fit (RefineCornersOnPattern) that checked a decoded marker: where it put the corners
+/// (cv::aruco order) and the blur variance it found. Detect takes it as the marker's refinement
+/// instead of fitting the same pattern again.
+struct FittedPattern {
+  float blur = -1.0f;  ///< px^2; < 0: no fit
+  std::array<cv::Point2f, 4> corners{};
+};
+
 /// A marker the small decoder identified.
 struct SmallMarker {
   int id = -1;
   std::array<cv::Point2f, 4> corners{};  ///< cv::aruco order: corner 0 is the marker's top-left
+  FittedPattern fit;                     ///< PatternExplainsPixels' fit from `corners`
 };
 
 /// Decodes a small candidate quad (any corner order) of an 8-bit grey frame. Tries the quad as the
@@ -75,9 +84,10 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
 /// Whether marker `id`'s printed pattern, fitted to the frame from `corners` (cv::aruco order) by
 /// RefineCornersOnPattern, explains the pixels there. A reading that merely happens to match a code
 /// (a bigger marker's inner cells read on a coarser grid, texture) leaves many pixels unexplained
-/// and is refused: the second chance's check against false positives.
+/// and is refused: the second chance's check against false positives. `fit`, when given, receives
+/// the fit of a pattern that does.
 bool PatternExplainsPixels(const cv::Mat& grey, const cv::aruco::Dictionary& dictionary, int id, int border_bits,
-                           const std::array<cv::Point2f, 4>& corners);
+                           const std::array<cv::Point2f, 4>& corners, FittedPattern* fit = nullptr);
 
 /// The candidates of `rejected` DecodeRejected tries, as indices in their order: the quads whose mean
 /// side SmallCandidateSide accepts, at most kMaxSmallCandidates of them, the biggest.

@@ -307,6 +307,8 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     // predicted next frame). char: written from parallel_for_.
     std::vector<char> anchored, edges_fitted;
     std::vector<internal::FitMemory> fits;
+    // Per tag: the pattern fit that checked a small marker's reading (the second chance's), if any.
+    std::vector<internal::FittedPattern> checked;
     if (fast) {
       // A moved-from Detector has no tracking state: it still detects, frame by frame.
       for (const auto& found : internal::FastDetect(grey, detector.config(), detector.dictionary(),
@@ -314,6 +316,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
         if (!add(found.id, found.corners.data())) continue;
         fits.push_back(found.fit);
         edges_fitted.push_back(found.edges_fitted);
+        checked.push_back(found.checked);
       }
     } else {
       std::vector<std::vector<cv::Point2f>> corners;
@@ -331,7 +334,9 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       // too, so both paths report the same ids.
       for (const auto& marker : internal::DecodeRejected(grey, rejected, corners, ids, *detector.dictionary(),
                                                          *parameters)) {
-        add(marker.id, marker.corners.data());
+        if (!add(marker.id, marker.corners.data())) continue;
+        checked.resize(tags.size() - 1);
+        checked.push_back(marker.fit);
       }
       if (subpix) {
         const int cells = detector.dictionary()->markerSize + 2 * parameters->markerBorderBits;
@@ -348,6 +353,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
     std::vector<internal::FitMemory> last(tags.size());
     last.swap(fits);
     edges_fitted.resize(tags.size(), 0);
+    checked.resize(tags.size());
     anchored.assign(tags.size(), 1);
     if (config.corner_refinement == CornerRefinement::kEdge) {
       // Tags are independent: refine them on all cores (tens of microseconds each). Tracked markers
@@ -368,11 +374,22 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
           }
         }
       });
-      // The small markers, smallest first, up to pattern_fit_max_markers of them.
+      // A small marker whose reading a pattern fit checked (the second chance's) keeps that fit: it
+      // is the fit this stage would run, from the decoder's corners instead of the edge fit's. It is
+      // free, so it does not count against pattern_fit_max_markers.
+      std::vector<char> fitted(tags.size(), 0);
+      for (size_t i = 0; i < tags.size(); ++i) {
+        if (checked[i].blur < 0.0f || !(internal::MeanSide(tags[i].corners) < config.pattern_fit_max_side)) continue;
+        fits[i].blur = checked[i].blur;
+        for (int c = 0; c < 4; ++c) fits[i].offset[c] = checked[i].corners[c] - tags[i].corners[c];
+        tags[i].corners = checked[i].corners;
+        fitted[i] = 1;
+      }
+      // The other small markers, smallest first, up to pattern_fit_max_markers of them.
       std::vector<std::pair<float, size_t>> small;
       for (size_t i = 0; i < tags.size(); ++i) {
         const float side = internal::MeanSide(tags[i].corners);
-        if (side < config.pattern_fit_max_side) small.emplace_back(side, i);
+        if (!fitted[i] && side < config.pattern_fit_max_side) small.emplace_back(side, i);
       }
       std::sort(small.begin(), small.end());
       if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
@@ -380,7 +397,6 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       }
       // A carried marker left out of the pattern fit this frame (grown past pattern_fit_max_side, or
       // past the count) takes its edge fit's second pass.
-      std::vector<char> fitted(tags.size(), 0);
       for (const auto& entry : small) fitted[entry.second] = 1;
       for (size_t i = 0; i < tags.size(); ++i) {
         if (!edges_fitted[i] && carried(i) && !fitted[i]) internal::RefineCornersOnEdgesOnce(grey, tags[i].corners, cells);

@@ -14,6 +14,8 @@
 #include <arucotag/aruco_tag.hpp>
 #include <arucotag/detector.hpp>
 
+#include "decode_small.hpp"
+
 namespace arucotag::internal {
 
 /// What a marker's pattern fit leaves for the fit of the same marker in the next frame.
@@ -28,6 +30,7 @@ struct Found {
   std::array<cv::Point2f, 4> corners{};
   FitMemory fit;  ///< read where tracking predicted it: its pattern fit of last frame (blur < 0: none)
   bool edges_fitted = false;  ///< corners already refined by RefineCornersOnEdges (from a settled fit)
+  FittedPattern checked;      ///< the pattern fit that checked a small marker's reading (blur < 0: none)
 };
 
 /// What one frame leaves for the next.

@@ -250,9 +250,10 @@ bool OnMarker(const Quad& q, const Quad& marker) {
 // are traced on the quad's neighbourhood and read the same way first, so that every marker the full
 // search decodes is decoded here too. What still fails gets the second-chance decoder, on this
 // contour and on cv::aruco's (`second_chance` set: cv::aruco has no corners of its own there).
+// Either way a pattern fit checks the reading; `checked` receives it.
 bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
                      const cv::aruco::DetectorParameters& p, const Quad& quad, Quad& decoded, int& id,
-                     bool& second_chance) {
+                     bool& second_chance, FittedPattern& checked) {
   const cv::Mat& grey = pyramid.images[0];
   std::vector<Quad> traced;
   OpenCvQuadsNear(pyramid, config, quad.corners, traced);
@@ -267,7 +268,7 @@ bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const
     decoded = q;
     std::rotate(decoded.corners.begin(), decoded.corners.begin() + 4 - rotation, decoded.corners.end());
     // Read on contours cv::aruco may never have read: held to the second chance's standard.
-    if (!PatternExplainsPixels(grey, dictionary, id, p.markerBorderBits, decoded.corners)) continue;
+    if (!PatternExplainsPixels(grey, dictionary, id, p.markerBorderBits, decoded.corners, &checked)) continue;
     return true;
   }
   local.insert(local.begin(), quad);
@@ -278,6 +279,7 @@ bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const
     decoded.corners = marker.corners;
     id = marker.id;
     second_chance = true;
+    checked = marker.fit;
     return true;
   }
   return false;
@@ -299,6 +301,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   std::vector<int> ids(n, -1);
   std::vector<Quad> decoded(quads);
   std::vector<char> second_chance(n, 0);
+  std::vector<FittedPattern> checked(n);
   std::vector<size_t> read;  // quads read so far
   const auto on_read_marker = [&](size_t i) {
     return std::any_of(read.begin(), read.end(), [&](size_t k) { return OnMarker(quads[i], decoded[k]); });
@@ -360,7 +363,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       const int i = fragile[f];
       int id = -1;
       bool second = false;
-      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second)) {
+      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second, checked[i])) {
         ids[i] = id;
         second_chance[i] = second;
       }
@@ -390,6 +393,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       Quad q = decoded[kept[i]];
       const bool second = second_chance[kept[i]];
       found[i].id = ids[kept[i]];
+      found[i].checked = checked[kept[i]];
       // A full-resolution contour's corners are within the edge fit's reach: where that fit settles
       // (one more pass would move no corner by over kEdgeFitSettledPx) it has reached the fixed point
       // it would reach from cv::aruco's corners too, and tracing cv::aruco's windows around the marker
