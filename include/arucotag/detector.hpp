@@ -88,7 +88,8 @@ struct DetectorConfig {
   int pattern_fit_max_side = 56;
   /// At most this many markers per frame get the pattern fit, the smallest first (they need it
   /// most): bounds the time a crowded frame (a calibration board, a wall of markers) adds. 0 = no
-  /// limit.
+  /// limit. A small marker read by the second chance (see fast_path) keeps the pattern fit that
+  /// checked its reading, fitted once, and does not count.
   int pattern_fit_max_markers = 8;
 
   std::vector<int> allowed_ids;  ///< when not empty, only these ids are reported
