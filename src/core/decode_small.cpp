@@ -87,6 +87,23 @@ bool SampleUnit(const cv::Mat& grey, const cv::Matx33d& h, double u, double v, d
 
 cv::Point2f MapUnit(const cv::Matx33d& h, double u, double v) { return ApplyHomography(h, u, v); }
 
+// Whether every point of h's unit square maps into the frame with room for SampleInside: the corners'
+// w of one sign (w is affine in u and v, so it keeps that sign over the square, and the square maps
+// onto the convex quad of its corners) and their box inside [0, cols - 1) x [0, rows - 1) by a
+// margin far above the rounding of the mapping.
+bool UnitSquareInside(const cv::Mat& grey, const cv::Matx33d& h) {
+  constexpr double kMargin = 1e-3;  // px
+  for (const double u : {0.0, 1.0}) {
+    for (const double v : {0.0, 1.0}) {
+      const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+      if (!(w > 1e-9)) return false;
+      const double x = (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, y = (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w;
+      if (!(x >= kMargin && y >= kMargin && x <= grey.cols - 1 - kMargin && y <= grey.rows - 1 - kMargin)) return false;
+    }
+  }
+  return true;
+}
+
 // The quad whose unit square is [u0, u1] x [v0, v1] of h's.
 cv::Matx33d SubSquare(const cv::Matx33d& h, double u0, double v0, double u1, double v1) {
   return h * cv::Matx33d(u1 - u0, 0.0, u0, 0.0, v1 - v0, v0, 0.0, 0.0, 1.0);
@@ -366,12 +383,21 @@ bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inve
   const int g = kProfileStepsPerCell * cells;
   const int band_from = g * 3 / 10, band_to = g * 7 / 10;
   std::vector<double> across(g, 0.0), down(g, 0.0);  // profiles along u and along v
+  // SampleUnit's arithmetic, without its bounds checks and clamp when no sample can leave the frame
+  // (the same values: inside, truncation is the floor and the clamp never acts).
+  const bool inside = UnitSquareInside(grey, h);
+  const auto sample = [&](double u, double v, double& value) {
+    if (!inside) return SampleUnit(grey, h, u, v, value);
+    const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+    value = SampleInside(grey, (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w);
+    return true;
+  };
   for (int k = 0; k < g; ++k) {
     const double t = (k + 0.5) / g;
     for (int b = band_from; b < band_to; ++b) {
       const double s = (b + 0.5) / g;
       double a = 0.0, d = 0.0;
-      if (!SampleUnit(grey, h, t, s, a) || !SampleUnit(grey, h, s, t, d)) return false;
+      if (!sample(t, s, a) || !sample(s, t, d)) return false;
       across[k] += inverted ? -a : a;
       down[k] += inverted ? -d : d;
     }
