@@ -78,11 +78,28 @@ bool Bilinear(const cv::Mat& grey, double x, double y, double& value) {
   return true;
 }
 
-// Grey value at unit-square coordinates (u, v) of the quad whose homography is h.
-bool SampleUnit(const cv::Mat& grey, const cv::Matx33d& h, double u, double v, double& value) {
+// The image point (x, y) of unit-square coordinates (u, v) of h, in double; returns its w (x and y are
+// not finite when w is 0).
+double UnitToImage(const cv::Matx33d& h, double u, double v, double& x, double& y) {
   const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
+  x = (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w;
+  y = (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w;
+  return w;
+}
+
+// Grey value at unit-square coordinates (u, v) of the quad whose homography is h. `inside`: the caller
+// knows the point maps inside the frame with room for SampleInside (UnitSquareInside), so the bounds
+// checks and the clamp are skipped (the same value: there truncation is the floor and the clamp never
+// acts).
+bool SampleUnit(const cv::Mat& grey, const cv::Matx33d& h, double u, double v, double& value, bool inside = false) {
+  double x = 0.0, y = 0.0;
+  const double w = UnitToImage(h, u, v, x, y);
+  if (inside) {
+    value = SampleInside(grey, x, y);
+    return true;
+  }
   if (std::fabs(w) < 1e-12) return false;
-  return Bilinear(grey, (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w, value);
+  return Bilinear(grey, x, y, value);
 }
 
 cv::Point2f MapUnit(const cv::Matx33d& h, double u, double v) { return ApplyHomography(h, u, v); }
@@ -95,9 +112,8 @@ bool UnitSquareInside(const cv::Mat& grey, const cv::Matx33d& h) {
   constexpr double kMargin = 1e-3;  // px
   for (const double u : {0.0, 1.0}) {
     for (const double v : {0.0, 1.0}) {
-      const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
-      if (!(w > 1e-9)) return false;
-      const double x = (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, y = (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w;
+      double x = 0.0, y = 0.0;
+      if (!(UnitToImage(h, u, v, x, y) > 1e-9)) return false;
       if (!(x >= kMargin && y >= kMargin && x <= grey.cols - 1 - kMargin && y <= grey.rows - 1 - kMargin)) return false;
     }
   }
@@ -383,21 +399,14 @@ bool InnerSquare(const cv::Mat& grey, const cv::Matx33d& h, int cells, bool inve
   const int g = kProfileStepsPerCell * cells;
   const int band_from = g * 3 / 10, band_to = g * 7 / 10;
   std::vector<double> across(g, 0.0), down(g, 0.0);  // profiles along u and along v
-  // SampleUnit's arithmetic, without its bounds checks and clamp when no sample can leave the frame
-  // (the same values: inside, truncation is the floor and the clamp never acts).
+  // No sample can leave the frame when the whole square maps inside it: no bounds checks then.
   const bool inside = UnitSquareInside(grey, h);
-  const auto sample = [&](double u, double v, double& value) {
-    if (!inside) return SampleUnit(grey, h, u, v, value);
-    const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
-    value = SampleInside(grey, (h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w);
-    return true;
-  };
   for (int k = 0; k < g; ++k) {
     const double t = (k + 0.5) / g;
     for (int b = band_from; b < band_to; ++b) {
       const double s = (b + 0.5) / g;
       double a = 0.0, d = 0.0;
-      if (!sample(t, s, a) || !sample(s, t, d)) return false;
+      if (!SampleUnit(grey, h, t, s, a, inside) || !SampleUnit(grey, h, s, t, d, inside)) return false;
       across[k] += inverted ? -a : a;
       down[k] += inverted ? -d : d;
     }
