@@ -3,7 +3,11 @@
 // frame has thousands of borders (noise specks, texture), most a few pixels long, and OpenCV spends
 // more on each one's sequence, memory arena and bounding box than on following it (callgrind, bench
 // set 640x480 with one marker: 23.7k borders in 6 frames, about 790 instructions each). Here a
-// border's points go to one reused vector, and the caller measures only the borders it keeps.
+// border's points go to one reused vector, and the caller measures only the borders it keeps. The
+// raster scan between borders tests 16 (SSE2) or 8 pixels at a time for a border's start instead of
+// stopping at every change of value, most of which are borders already followed (perf, 640x480 and
+// 720p renders: the scan was half the follower's time; now 0.22 against 0.38 ms a frame, the same
+// borders).
 #include "contours.hpp"
 
 #include "geometry.hpp"
@@ -13,6 +17,10 @@
 #include <cstdlib>
 #include <cstring>
 #include <utility>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 namespace arucotag::internal {
 
@@ -29,20 +37,49 @@ constexpr uchar kRightEdge = 0x82;
 constexpr int kDx[8] = {1, 1, 0, -1, -1, -1, 0, 1};
 constexpr int kDy[8] = {0, -1, -1, -1, 0, 1, 1, 1};
 
-// The first x in [x, end) whose pixel differs from `value`, or `end`: eight pixels a step.
-int SkipRun(const uchar* row, int x, int end, uchar value) {
-  const uint64_t repeated = 0x0101010101010101ULL * value;
+// Where a border starts, reading the row as it stands (marks included): at x with its left neighbour
+// background and x unmarked foreground (an outer border), or x background and its left neighbour
+// unmarked or kVisited foreground (a hole). Pixel values are kBackground (0), kForeground (1),
+// kVisited (2) and kRightEdge (0x82): bit 0 is set only on kForeground, bit 7 only on kRightEdge.
+// The first such x in [x, end), or `end`. Most changes along a row are borders already followed, so
+// the row is tested for starts a block at a time rather than stopping at every change.
+int NextStart(const uchar* row, int x, int end) {
+#if defined(__SSE2__)
+  // Sixteen pixels a step where SSE2 is (every x86-64).
+  const __m128i zero = _mm_setzero_si128(), one = _mm_set1_epi8(1);
+  for (; x + 16 <= end; x += 16) {
+    const __m128i here = _mm_loadu_si128(reinterpret_cast<const __m128i*>(row + x));
+    const __m128i left = _mm_loadu_si128(reinterpret_cast<const __m128i*>(row + x - 1));
+    const __m128i outer = _mm_and_si128(_mm_cmpeq_epi8(left, zero), _mm_cmpeq_epi8(here, one));
+    // kForeground or kVisited: positive as signed bytes (kRightEdge is negative).
+    const __m128i hole = _mm_and_si128(_mm_cmpeq_epi8(here, zero), _mm_cmpgt_epi8(left, zero));
+    const int starts = _mm_movemask_epi8(_mm_or_si128(outer, hole));
+    if (starts != 0) return x + __builtin_ctz(static_cast<unsigned>(starts));
+  }
+#endif
+  // Eight pixels a step in a 64-bit word (the rest of the row there, the whole row elsewhere): bit 7
+  // of each byte of `starts` says whether a border starts at that pixel.
+  constexpr uint64_t kLow7 = 0x7f7f7f7f7f7f7f7fULL, kBit7 = 0x8080808080808080ULL, kBit0 = 0x0101010101010101ULL;
   for (; x + 8 <= end; x += 8) {
-    uint64_t word;
-    std::memcpy(&word, row + x, sizeof(word));
-    const uint64_t differ = word ^ repeated;
-    if (differ != 0) {
-      // Little-endian: the lowest set byte is the leftmost pixel.
-      return x + (__builtin_ctzll(differ) >> 3);
+    uint64_t here, left;
+    std::memcpy(&here, row + x, sizeof(here));
+    std::memcpy(&left, row + x - 1, sizeof(left));
+    // Bit 7 set where the pixel is nonzero (every nonzero value has a bit below 7: no carry out).
+    const uint64_t here_set = ((here & kLow7) + kLow7) & kBit7, left_set = ((left & kLow7) + kLow7) & kBit7;
+    const uint64_t outer = ~left_set & (here & kBit0) << 7;      // background, then kForeground
+    const uint64_t hole = ~here_set & left_set & ~left & kBit7;  // kForeground or kVisited, then background
+    const uint64_t starts = outer | hole;
+    // Little-endian: the lowest set byte is the leftmost pixel.
+    if (starts != 0) return x + (__builtin_ctzll(starts) >> 3);
+  }
+  for (; x < end; ++x) {
+    const uchar left = row[x - 1], here = row[x];
+    if ((left == kBackground && here == kForeground) ||
+        (here == kBackground && (left == kForeground || left == kVisited))) {
+      return x;
     }
   }
-  while (x < end && row[x] == value) ++x;
-  return x;
+  return end;
 }
 
 // Follows the border through `start` (at `pt` in output coordinates), an outer border's leftmost
@@ -115,26 +152,19 @@ BorderScan::BorderScan(cv::Mat& binary)
 }
 
 bool BorderScan::Next(std::vector<cv::Point>& points) {
-  // Scan inside the frame; a border starts where the row changes from background to unmarked
-  // foreground (an outer border) or from unmarked or kVisited foreground to background (a hole).
+  // Scan inside the frame (its column 0 is background, so every pixel scanned has a left neighbour).
   const int end = cols_ - 1;
   for (; y_ < rows_ - 1; ++y_) {
     uchar* row = data_ + y_ * step_;
-    for (; (x_ = SkipRun(row, x_, end, prev_)) < end; ++x_) {
-      const uchar p = row[x_];
-      const bool outer = prev_ == kBackground && p == kForeground;
-      const bool hole = p == kBackground && (prev_ == kForeground || prev_ == kVisited);
-      if (outer || hole) {
-        const int x = x_ - (hole ? 1 : 0);
-        Follow(row + x, static_cast<ptrdiff_t>(step_), cv::Point(x - 1, y_ - 1), hole, points);
-        prev_ = row[x_];  // as marked now
-        ++x_;
-        return true;
-      }
-      prev_ = p;
+    x_ = NextStart(row, x_, end);
+    if (x_ < end) {
+      const bool hole = row[x_] == kBackground;
+      const int x = x_ - (hole ? 1 : 0);
+      Follow(row + x, static_cast<ptrdiff_t>(step_), cv::Point(x - 1, y_ - 1), hole, points);
+      ++x_;
+      return true;
     }
     x_ = 1;
-    prev_ = kBackground;
   }
   return false;
 }

@@ -30,7 +30,6 @@ class BorderScan {
   size_t step_;
   int rows_, cols_;
   int x_ = 1, y_ = 1;
-  uchar prev_ = kBackground;
 };
 
 /// A closed polygon's bounding box and twice its signed area (the shoelace sum), exactly: what

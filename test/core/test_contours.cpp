@@ -119,6 +119,7 @@ TEST(ApproximatePolygon, SameVerticesAsOpenCvOnPhotoBorders) {
   EXPECT_GT(quads, 100);  // markers and clutter squares among them, not only specks
 }
 
+// Widths from 1 to 71 px: rows end within each block size of the scan (16 pixels, 8, then 1).
 TEST(BorderScan, SameBordersAsOpenCvOnNoise) {
   cv::RNG rng(14);
   for (int trial = 0; trial < 60; ++trial) {
