@@ -22,6 +22,8 @@ constexpr double kPlateauBorder = 5.0;
 constexpr double kFitLength = 20.0;
 // Profiles across each fitted stretch: beyond this the line barely improves and time grows.
 constexpr int kProfilesPerEdge = 16;
+// Samples across a profile, at most: 3 px each side at 0.5 px steps, or under 2 px at 0.25 px.
+constexpr int kMaxProfileSamples = 17;
 // How far (px) a pass may move a corner, and all passes together, before the move is distrusted (the
 // two edge lines nearly parallel, or fitted on something else)... 
 constexpr double kMaxMovePerPass = 3.0;
@@ -66,6 +68,7 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   // Finer sampling where the profile is only a few pixels long.
   const double step = reach < 2.0 ? 0.25 : 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
+  static_assert(2 * 8 + 1 <= kMaxProfileSamples, "reach under 2 px at 0.25 px steps: at most 8 each side");
 
   // A fixed-size buffer (this runs 8 times a pass on every marker; heap allocations were a measurable
   // share of it).
@@ -89,16 +92,20 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
     // the crossing is the better estimate. Exactly one crossing: a second means the profile ran
     // into something else (inner bits, clutter), and then the crossing nearest the expected edge is
     // used as well.
+    // The samples first, in a loop of independent reads, then the scan along them.
+    std::array<double, kMaxProfileSamples> profile;
+    profile[0] = dark;
+    profile[samples - 1] = light;
+    for (int i = 1; i + 1 < samples; ++i) {
+      const cv::Point2d p = base + outward * ((i - half) * step);
+      profile[i] = internal::SampleInside(grey, p.x, p.y);
+    }
     const double level = 0.5 * (dark + light);
     int crossings = 0;
     double area = 0.0, crossing = std::numeric_limits<double>::infinity();
     double before = dark;  // the sample at i - 1
     for (int i = 1; i < samples; ++i) {
-      double value = light;
-      if (i + 1 < samples) {
-        const cv::Point2d p = base + outward * ((i - half) * step);
-        value = internal::SampleInside(grey, p.x, p.y);
-      }
+      const double value = profile[i];
       if (before < level && value >= level) {
         ++crossings;
         const double at = (i - 1 - half + (level - before) / (value - before)) * step;
