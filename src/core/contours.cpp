@@ -82,12 +82,55 @@ int NextStart(const uchar* row, int x, int end) {
   return end;
 }
 
+// The neighbour of `here` in direction D (0 right, counter-clockwise), as a constant displacement
+// from the pixel or from the rows above (`up`) and below (`down`) it.
+template <int D>
+ARUCOTAG_INLINE uchar At(const uchar* here, const uchar* up, const uchar* down) {
+  switch (D & 7) {
+    case 0: return here[1];
+    case 1: return up[1];
+    case 2: return up[0];
+    case 3: return up[-1];
+    case 4: return here[-1];
+    case 5: return down[-1];
+    case 6: return down[0];
+    default: return down[1];
+  }
+}
+
+// Counter-clockwise from direction Back + 1, the first foreground neighbour of `here`, as Back plus
+// the number of steps turned (Back + 8 is direction Back itself, foreground: the pixel came from
+// there). Straight-line tests with the directions known at compile time, one sequence per Back.
+template <int Back>
+ARUCOTAG_INLINE int Turn(const uchar* here, ptrdiff_t step) {
+  const uchar *up = here - step, *down = here + step;
+  if (At<Back + 1>(here, up, down) != kBackground) return Back + 1;
+  if (At<Back + 2>(here, up, down) != kBackground) return Back + 2;
+  if (At<Back + 3>(here, up, down) != kBackground) return Back + 3;
+  if (At<Back + 4>(here, up, down) != kBackground) return Back + 4;
+  if (At<Back + 5>(here, up, down) != kBackground) return Back + 5;
+  if (At<Back + 6>(here, up, down) != kBackground) return Back + 6;
+  if (At<Back + 7>(here, up, down) != kBackground) return Back + 7;
+  return Back + 8;
+}
+
+int TurnFrom(int back, const uchar* here, ptrdiff_t step) {
+  switch (back) {
+    case 0: return Turn<0>(here, step);
+    case 1: return Turn<1>(here, step);
+    case 2: return Turn<2>(here, step);
+    case 3: return Turn<3>(here, step);
+    case 4: return Turn<4>(here, step);
+    case 5: return Turn<5>(here, step);
+    case 6: return Turn<6>(here, step);
+    default: return Turn<7>(here, step);
+  }
+}
+
 // Follows the border through `start` (at `pt` in output coordinates), an outer border's leftmost
 // top pixel or the foreground pixel left of a hole's, clockwise around the foreground, marking it.
 void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<cv::Point>& points) {
-  // Neighbour offsets for directions 0..7, twice, so a search may run on past direction 7.
-  const ptrdiff_t offset[16] = {1, 1 - step, -step, -1 - step, -1, step - 1, step, step + 1,
-                                1, 1 - step, -step, -1 - step, -1, step - 1, step, step + 1};
+  const ptrdiff_t offset[8] = {1, 1 - step, -step, -1 - step, -1, step - 1, step, step + 1};
   points.clear();
 
   // The last foreground neighbour before the border's first step, searched clockwise from the
@@ -108,14 +151,12 @@ void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<c
   uchar* here = start;
   for (;;) {
     // Counter-clockwise from the previous pixel's direction to the next foreground neighbour. The
-    // previous pixel is foreground, so the search ends within eight directions.
-    const int back = s;
-    uchar* next;
-    do {
-      next = here + offset[++s];
-    } while (*next == kBackground);
-    s &= 7;
-    if (static_cast<unsigned>(s - 1) < static_cast<unsigned>(back)) {
+    // previous pixel is foreground, so the search ends within eight directions; past 8 it passed
+    // direction 0.
+    const int turn = TurnFrom(s, here, step);
+    s = turn & 7;
+    uchar* next = here + offset[s];
+    if (turn > 8) {
       *here = kRightEdge;  // the search passed direction 0: the right neighbour is background
     } else if (*here == kForeground) {
       *here = kVisited;
