@@ -173,18 +173,6 @@ void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<c
 // The index after i on a ring of `count` indices.
 int NextOnRing(int i, int count) { return i + 1 == count ? 0 : i + 1; }
 
-// visit(i) for each index after a and before b on a ring of `count` indices, in that order (with
-// a == b, every index but a), as at most two plain loops.
-template <class Visit>
-ARUCOTAG_INLINE void Between(int a, int b, int count, Visit&& visit) {
-  if (a < b) {
-    for (int i = a + 1; i < b; ++i) visit(i);
-    return;
-  }
-  for (int i = a + 1; i < count; ++i) visit(i);
-  for (int i = 0; i < b; ++i) visit(i);
-}
-
 }  // namespace
 
 BorderScan::BorderScan(cv::Mat& binary)
@@ -229,12 +217,74 @@ Outline Measure(const std::vector<cv::Point>& points) {
   return outline;
 }
 
-void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, std::vector<cv::Point>& polygon) {
-  polygon.clear();
-  const int count = static_cast<int>(points.size());
-  if (count == 0) return;
-  const cv::Point* p = points.data();
-  const double eps2 = epsilon * epsilon;
+namespace {
+
+// The distances of ApproximatePolygon's searches, in integers of type T, from every point of [lo, hi)
+// into d, returning the largest of them and `largest`: squared distances from `o`, or distances from
+// the line through `o` along (cx, cy) times that vector's length. Plain loops the compiler vectorises
+// for 32-bit T (built for AVX2 too); where the largest is is found afterwards by a scan that stops at
+// it, rather than carried from point to point.
+template <class T>
+ARUCOTAG_INLINE T SquaredDistancesOf(const cv::Point* p, int lo, int hi, cv::Point o, T* d, T largest) {
+  for (int i = lo; i < hi; ++i) {
+    const T dx = p[i].x - o.x, dy = p[i].y - o.y;
+    d[i] = dx * dx + dy * dy;
+    largest = std::max(largest, d[i]);
+  }
+  return largest;
+}
+template <class T>
+ARUCOTAG_INLINE T ChordDistancesOf(const cv::Point* p, int lo, int hi, cv::Point o, T cx, T cy, T* d, T largest) {
+  for (int i = lo; i < hi; ++i) {
+    d[i] = std::abs((p[i].y - o.y) * cx - (p[i].x - o.x) * cy);
+    largest = std::max(largest, d[i]);
+  }
+  return largest;
+}
+ARUCOTAG_VECTOR_CLONES int32_t SquaredDistances(const cv::Point* p, int lo, int hi, cv::Point o, int32_t* d,
+                                                int32_t largest) {
+  return SquaredDistancesOf(p, lo, hi, o, d, largest);
+}
+ARUCOTAG_VECTOR_CLONES int32_t ChordDistances(const cv::Point* p, int lo, int hi, cv::Point o, int32_t cx,
+                                              int32_t cy, int32_t* d, int32_t largest) {
+  return ChordDistancesOf(p, lo, hi, o, cx, cy, d, largest);
+}
+int64_t SquaredDistances(const cv::Point* p, int lo, int hi, cv::Point o, int64_t* d, int64_t largest) {
+  return SquaredDistancesOf(p, lo, hi, o, d, largest);
+}
+int64_t ChordDistances(const cv::Point* p, int lo, int hi, cv::Point o, int64_t cx, int64_t cy, int64_t* d,
+                       int64_t largest) {
+  return ChordDistancesOf(p, lo, hi, o, cx, cy, d, largest);
+}
+
+// The first index of [lo0, hi0) then [lo1, hi1) whose value in d is `value`, or -1.
+template <class T>
+int FirstOf(const T* d, int lo0, int hi0, int lo1, int hi1, T value) {
+  for (int i = lo0; i < hi0; ++i) {
+    if (d[i] == value) return i;
+  }
+  for (int i = lo1; i < hi1; ++i) {
+    if (d[i] == value) return i;
+  }
+  return -1;
+}
+
+// The indices after a and before b on a ring of `count` (with a == b, all but a), as two ranges in
+// ring order.
+ARUCOTAG_INLINE void RingRanges(int a, int b, int count, int& lo0, int& hi0, int& lo1, int& hi1) {
+  lo0 = a + 1;
+  hi0 = a < b ? b : count;
+  lo1 = 0;
+  hi1 = a < b ? 0 : b;
+}
+
+// ApproximatePolygon's vertices before its clean-up, with distances in T.
+template <class T>
+void DouglasPeucker(const cv::Point* p, int count, double eps2, std::vector<cv::Point>& polygon) {
+  thread_local std::vector<T> distances;
+  distances.resize(static_cast<size_t>(count));
+  T* d = distances.data();
+  int lo0, hi0, lo1, hi1;
 
   // Two points far apart: from point 0 the farthest point, from that one the farthest, and again.
   // Distances are exact in integers; ties keep the first.
@@ -243,16 +293,9 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
   for (int round = 0; round < 3; ++round) {
     from = (from + offset) % count;
     const cv::Point o = p[from];
-    int64_t farthest = 0;
-    int far_at = -1;
-    Between(from, from, count, [&](int at) {
-      const int64_t dx = p[at].x - o.x, dy = p[at].y - o.y;
-      const int64_t d = dx * dx + dy * dy;
-      if (d > farthest) {
-        farthest = d;
-        far_at = at;
-      }
-    });
+    RingRanges(from, from, count, lo0, hi0, lo1, hi1);
+    const T farthest = SquaredDistances(p, lo1, hi1, o, d, SquaredDistances(p, lo0, hi0, o, d, T(0)));
+    const int far_at = farthest > 0 ? FirstOf(d, lo0, hi0, lo1, hi1, farthest) : -1;
     if (far_at >= 0) offset = far_at > from ? far_at - from : far_at + count - from;
     within = static_cast<double>(farthest) <= eps2;
   }
@@ -274,17 +317,13 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
     int split = -1;
     if (NextOnRing(a, count) != b) {
       const cv::Point o = p[a];
-      const int64_t dx = p[b].x - o.x, dy = p[b].y - o.y;
-      int64_t farthest = 0;  // distance from the chord times the chord's length
-      Between(a, b, count, [&](int at) {
-        const int64_t d = std::abs((p[at].y - o.y) * dx - (p[at].x - o.x) * dy);
-        if (d > farthest) {
-          farthest = d;
-          split = at;
-        }
-      });
+      const T dx = p[b].x - o.x, dy = p[b].y - o.y;
+      RingRanges(a, b, count, lo0, hi0, lo1, hi1);
+      // The distance from the chord times the chord's length.
+      const T farthest = ChordDistances(p, lo1, hi1, o, dx, dy, d, ChordDistances(p, lo0, hi0, o, dx, dy, d, T(0)));
+      if (farthest > 0) split = FirstOf(d, lo0, hi0, lo1, hi1, farthest);
       const double far = static_cast<double>(farthest);
-      if (far * far <= eps2 * static_cast<double>(dx * dx + dy * dy)) split = -1;
+      if (far * far <= eps2 * (static_cast<double>(dx) * dx + static_cast<double>(dy) * dy)) split = -1;
     }
     if (split < 0) {
       polygon.push_back(p[a]);
@@ -292,6 +331,23 @@ void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, st
       arcs.emplace_back(split, b);
       arcs.emplace_back(a, split);
     }
+  }
+}
+
+}  // namespace
+
+void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, std::vector<cv::Point>& polygon) {
+  polygon.clear();
+  const int count = static_cast<int>(points.size());
+  if (count == 0) return;
+  const double eps2 = epsilon * epsilon;
+  // Two points of a closed chain of `count` unit steps are at most count / 2 apart along either axis:
+  // under 2^15 points every product of coordinate differences is under 2^28, and 32 bits hold each
+  // distance exactly.
+  if (count < (1 << 15)) {
+    DouglasPeucker<int32_t>(points.data(), count, eps2, polygon);
+  } else {
+    DouglasPeucker<int64_t>(points.data(), count, eps2, polygon);
   }
 
   // Clean-up, in place and cyclically: a vertex within epsilon / sqrt(2) of the chord between its
