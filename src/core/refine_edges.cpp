@@ -70,6 +70,15 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
   const int half = static_cast<int>(std::ceil(reach / step));
   static_assert(2 * 8 + 1 <= kMaxProfileSamples, "reach under 2 px at 0.25 px steps: at most 8 each side");
 
+  // Each sample's offset from the profile's base, the same for every profile of the edge.
+  std::array<double, kMaxProfileSamples> across_x, across_y;
+  for (int i = 0; i < 2 * half + 1; ++i) {
+    across_x[i] = outward.x * ((i - half) * step);
+    across_y[i] = outward.y * ((i - half) * step);
+  }
+  const uchar* const pixels = grey.data;
+  const ptrdiff_t row_step = static_cast<ptrdiff_t>(grey.step[0]);
+
   // A fixed-size buffer (this runs 8 times a pass on every marker; heap allocations were a measurable
   // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
@@ -97,8 +106,13 @@ bool FitEdgeNearCorner(const cv::Mat& grey, const cv::Point2d& from, const cv::P
     profile[0] = dark;
     profile[samples - 1] = light;
     for (int i = 1; i + 1 < samples; ++i) {
-      const cv::Point2d p = base + outward * ((i - half) * step);
-      profile[i] = internal::SampleInside(grey, p.x, p.y);
+      const double x = base.x + across_x[i], y = base.y + across_y[i];
+      const int ix = static_cast<int>(x), iy = static_cast<int>(y);  // the floor: inside the image
+      const uchar* r0 = pixels + iy * row_step + ix;
+      const uchar* r1 = r0 + row_step;
+      const double fx = x - ix, fy = y - iy;
+      const double top = r0[0] + fx * (r0[1] - r0[0]), bottom = r1[0] + fx * (r1[1] - r1[0]);
+      profile[i] = top + fy * (bottom - top);  // SampleInside's arithmetic, so its values
     }
     const double level = 0.5 * (dark + light);
     int crossings = 0;
