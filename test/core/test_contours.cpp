@@ -120,6 +120,30 @@ TEST(ApproximatePolygon, SameVerticesAsOpenCvOnPhotoBorders) {
 }
 
 // Widths from 1 to 71 px: rows end within each block size of the scan (16 pixels, 8, then 1).
+// Borders of 2^15 points or more take ApproximatePolygon's 64-bit distances: a closed chain around a
+// large wobbly quad (a 9000 x 8000 px frame's worth), against cv::approxPolyDP.
+TEST(ApproximatePolygon, SameVerticesAsOpenCvOnALongBorder) {
+  if (CV_VERSION_MAJOR * 100 + CV_VERSION_MINOR > 412) GTEST_SKIP() << "cv::approxPolyDP's distance changed";
+  const std::vector<cv::Point> corners = {{10, 20}, {9010, 300}, {8700, 8020}, {150, 7900}};
+  std::vector<cv::Point> chain;
+  for (size_t c = 0; c < corners.size(); ++c) {
+    cv::LineIterator line(corners[c], corners[(c + 1) % corners.size()], 8);
+    for (int i = 0; i + 1 < line.count; ++i, ++line) {
+      cv::Point p = line.pos();
+      p.y += (i / 500) % 2;  // a step every 500 points, so the sides are not straight
+      chain.push_back(p);
+    }
+  }
+  ASSERT_GE(chain.size(), size_t{1} << 15);
+  std::vector<cv::Point> ours, theirs;
+  for (const double epsilon : {0.5, 2.0, 0.03 * chain.size()}) {
+    ApproximatePolygon(chain, epsilon, ours);
+    cv::approxPolyDP(chain, theirs, epsilon, true);
+    EXPECT_EQ(ours, theirs) << "epsilon " << epsilon;
+  }
+  EXPECT_EQ(ours.size(), 4u);  // at the coarse tolerance, the quad
+}
+
 TEST(BorderScan, SameBordersAsOpenCvOnNoise) {
   cv::RNG rng(14);
   for (int trial = 0; trial < 60; ++trial) {
