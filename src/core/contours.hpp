@@ -44,6 +44,9 @@ Outline Measure(const std::vector<cv::Point>& points);
 /// from two points far apart, by distance to the chord's line, then vertices on almost straight
 /// runs dropped; opencv/opencv#28119 later measures to the segment), in integer arithmetic where
 /// OpenCV's is exact anyway: the same vertices at a fraction of the cost, on any OpenCV version.
+/// `points` is a border BorderScan gives (a closed chain of unit steps): its length bounds how far
+/// apart two points lie, which is what lets chains under 2^15 points use 32-bit distances. Points
+/// spread wider than half their count along an axis can overflow them.
 void ApproximatePolygon(const std::vector<cv::Point>& points, double epsilon, std::vector<cv::Point>& polygon);
 
 }  // namespace arucotag::internal

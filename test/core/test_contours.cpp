@@ -119,9 +119,8 @@ TEST(ApproximatePolygon, SameVerticesAsOpenCvOnPhotoBorders) {
   EXPECT_GT(quads, 100);  // markers and clutter squares among them, not only specks
 }
 
-// Widths from 1 to 71 px: rows end within each block size of the scan (16 pixels, 8, then 1).
-// Borders of 2^15 points or more take ApproximatePolygon's 64-bit distances: a closed chain around a
-// large wobbly quad (a 9000 x 8000 px frame's worth), against cv::approxPolyDP.
+// Borders of 2^15 points or more take ApproximatePolygon's 64-bit distances: a closed polygon of that
+// many points around a large wobbly quad (a 9000 x 8000 px frame's worth), against cv::approxPolyDP.
 TEST(ApproximatePolygon, SameVerticesAsOpenCvOnALongBorder) {
   if (CV_VERSION_MAJOR * 100 + CV_VERSION_MINOR > 412) GTEST_SKIP() << "cv::approxPolyDP's distance changed";
   const std::vector<cv::Point> corners = {{10, 20}, {9010, 300}, {8700, 8020}, {150, 7900}};
@@ -144,6 +143,7 @@ TEST(ApproximatePolygon, SameVerticesAsOpenCvOnALongBorder) {
   EXPECT_EQ(ours.size(), 4u);  // at the coarse tolerance, the quad
 }
 
+// Widths from 1 to 71 px: rows end within each block size of the scan (16 pixels, 8, then 1).
 TEST(BorderScan, SameBordersAsOpenCvOnNoise) {
   cv::RNG rng(14);
   for (int trial = 0; trial < 60; ++trial) {
