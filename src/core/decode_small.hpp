@@ -81,6 +81,10 @@ struct SmallMarker {
 bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidate,
                  const cv::aruco::Dictionary& dictionary, int border_bits, bool detect_inverted, SmallMarker& marker);
 
+/// How many times the small decoder has estimated a candidate's cells (its costly step) on this
+/// thread so far: what DecodeSmall costs, counted rather than timed.
+size_t SmallCellEstimates();
+
 /// Whether marker `id`'s printed pattern, fitted to the frame from `corners` (cv::aruco order) by
 /// RefineCornersOnPattern, explains the pixels there. A reading that merely happens to match a code
 /// (a bigger marker's inner cells read on a coarser grid, texture) leaves many pixels unexplained

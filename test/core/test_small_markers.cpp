@@ -321,6 +321,47 @@ TEST(SmallMarkers, SecondChanceCorrectsTwoCellsOfTag36h11AndNoneOfFourByFour) {
   }
 }
 
+// A low-contrast DICT_4X4_50 marker (ink 150, paper 200, 4 px cells, a 0.6 px blur) framed by a quad
+// 1 px inside its black square, as a dim marker's contour lies: the plain reading is misframed. With
+// its quiet zone (a cell of paper) on a surround a little brighter than the paper, or on a dark one,
+// the other framings are tried and one reads it. The same pattern straight on the dark surround, far
+// darker than its ink (3 contrasts below the cells' threshold: a lit patch in shadow, clutter), gets
+// the plain reading alone (kMaxMisframedQuiet): one cell estimate (three with the other framings,
+// which read nothing there).
+TEST(SmallMarkers, OtherFramingsOnlyAmidAMarkersSurroundings) {
+  const auto four = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  cv::Mat marker;
+  cv::aruco::drawMarker(four, kId, 24, marker, 1);
+  marker.convertTo(marker, CV_8U, 50.0 / 255.0, 150.0);
+  const float a = 39.5f + 1.0f, b = 39.5f + 24.0f - 1.0f;
+  const std::array<cv::Point2f, 4> shrunk = {cv::Point2f(a, a), cv::Point2f(b, a), cv::Point2f(b, b),
+                                             cv::Point2f(a, b)};
+  struct Case {
+    int surround;
+    bool quiet_zone;
+  };
+  for (const Case c : {Case{210, true}, Case{20, true}, Case{20, false}}) {
+    cv::Mat grey(104, 104, CV_8UC1, cv::Scalar(c.surround));
+    if (c.quiet_zone) grey(cv::Rect(36, 36, 32, 32)).setTo(cv::Scalar(200));
+    marker.copyTo(grey(cv::Rect(40, 40, 24, 24)));
+    cv::GaussianBlur(grey, grey, cv::Size(), 0.6);
+    internal::SmallMarker read;
+    const size_t before = internal::SmallCellEstimates();
+    const bool found = internal::DecodeSmall(grey, shrunk, *four, 1, false, read);
+    const size_t estimates = internal::SmallCellEstimates() - before;
+    const std::string what = "surround " + std::to_string(c.surround) + (c.quiet_zone ? " with" : " without") +
+                             " a quiet zone";
+    if (c.quiet_zone) {
+      EXPECT_TRUE(found) << what;
+      EXPECT_EQ(read.id, kId) << what;
+      EXPECT_GT(estimates, 1u) << what;
+    } else {
+      EXPECT_FALSE(found) << what;
+      EXPECT_EQ(estimates, 1u) << what;
+    }
+  }
+}
+
 // The second chance accepts codes with a whole border only: textured frames without a
 // marker give nothing, on either path (640x480, the rover camera's field of view, to keep the
 // 200 renders quick).
