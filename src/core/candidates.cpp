@@ -16,6 +16,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
 
 #include <opencv2/imgproc.hpp>
@@ -35,6 +36,31 @@ double Scale(int level) { return 1.0 / (1 << level); }
 // markers had no candidate for that alone, both found by AprilTag 3).
 constexpr int kSmallContourPoints = 60;
 constexpr double kSmallContourApproxRate = 0.05;
+// A small full-resolution contour that neither fit makes a convex quad of may still be a marker's:
+// in a dim frame (35-60 grey levels between ink and paper under the usual sensor noise) the outline
+// of a 12-17 px tag36h11 marker carries pixel spurs from the noise, or runs through a gap the 7 px
+// window cut in its 1.5 px border into the marker and back (bench's dim distant set: 8-11 vertices
+// at cv::aruco's tolerance, 6-8 at kSmallContourApproxRate). Its convex hull drops both and is the
+// marker's square again (HullQuad), fitted at kSmallContourApproxRate of the hull's own length.
+// Contours up to kHullContourPoints long (the dim set's quads so found: under 100 points), twice that for
+// a ring's (it runs round the border twice), get it, and only where the binary image around it looks
+// like a marker (MarkerLikeBinary): it adds candidates that cost a second look each.
+constexpr int kHullContourPoints = 100;
+// px: and only outlines this small (bigger markers' borders are over 1.5 px wide and hold together).
+constexpr int kHullMaxSide = 24;
+// MarkerLikeBinary's rings, in the quad's grid (0 at its outline, 0.5 its centre): half a border cell
+// inside an 8-cell marker (the dark border ring), and just outside the outline (the light quiet zone).
+constexpr double kBorderRing = 0.06;
+constexpr double kQuietRing = -0.08;
+// Shares of foreground (dark) samples: the border ring at least, the quiet ring at most (measured on
+// the dim set's hull quads on markers: border 0.78-0.84, quiet 0.12-0.22).
+constexpr double kMinBorderDark = 0.6;
+constexpr double kMaxQuietDark = 0.4;
+// The rings a quarter and a third of the way in (the cells): not all dark, or it is a solid blob.
+constexpr double kCellRings[] = {0.25, 0.35};
+constexpr double kMaxCellsDark = 0.85;
+// LightAround: share of light pixels just outside the contour's bounding box, at least.
+constexpr double kMinLightAround = 0.7;
 
 // Level pixel -> full-resolution pixel (pixel centres at integers: a level-l pixel covers 2^l
 // full-resolution pixels).
@@ -107,6 +133,104 @@ void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   cv::copyMakeBorder(binary, out, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
 }
 
+// Share of dark (foreground) pixels of `binary` (with its 1-pixel frame; `q` in the coordinates
+// without it) at 32 points along the ring at grid offset t inside quad q (t < 0: outside).
+double RingDarkShare(const cv::Mat& binary, const std::array<cv::Point2f, 4>& q, double t) {
+  const cv::Point2f centre = (q[0] + q[1] + q[2] + q[3]) * 0.25f;
+  const float towards = static_cast<float>(2.0 * t);  // a corner moved this share towards the centre
+  std::array<cv::Point2f, 4> ring;
+  for (int i = 0; i < 4; ++i) ring[i] = q[i] + (centre - q[i]) * towards;
+  constexpr int kPerSide = 8;
+  int dark = 0, total = 0;
+  for (int e = 0; e < 4; ++e) {
+    const cv::Point2f a = ring[e], d = ring[(e + 1) % 4] - ring[e];
+    for (int k = 0; k < kPerSide; ++k) {
+      const cv::Point2f p = a + d * ((k + 0.5f) / kPerSide);
+      const int x = cvRound(p.x) + 1, y = cvRound(p.y) + 1;
+      if (x < 0 || y < 0 || x >= binary.cols || y >= binary.rows) continue;
+      ++total;
+      dark += binary.at<uchar>(y, x) != kBackground;  // BorderScan's marks are foreground too
+    }
+  }
+  return total > 0 ? static_cast<double>(dark) / total : 0.0;
+}
+
+// Whether `binary` looks like a marker around quad q: a dark border ring, a light ring outside it,
+// and light cells inside.
+bool MarkerLikeBinary(const cv::Mat& binary, const std::array<cv::Point2f, 4>& q) {
+  return RingDarkShare(binary, q, kBorderRing) >= kMinBorderDark && RingDarkShare(binary, q, kQuietRing) <= kMaxQuietDark &&
+         std::min(RingDarkShare(binary, q, kCellRings[0]), RingDarkShare(binary, q, kCellRings[1])) <= kMaxCellsDark;
+}
+
+// The convex hull of a contour (a closed chain of pixels) into `hull`, its vertices in order round
+// it: the leftmost and rightmost pixel of each row (nothing else can be a vertex), then Andrew's
+// monotone chain over them, already in row order. Linear in the contour and the box's height.
+void ContourHull(const std::vector<cv::Point>& contour, const cv::Rect& box, std::vector<cv::Point>& hull) {
+  thread_local std::vector<int> left, right;
+  left.assign(static_cast<size_t>(box.height), std::numeric_limits<int>::max());
+  right.assign(static_cast<size_t>(box.height), std::numeric_limits<int>::min());
+  for (const cv::Point& p : contour) {
+    const size_t row = static_cast<size_t>(p.y - box.y);
+    left[row] = std::min(left[row], p.x);
+    right[row] = std::max(right[row], p.x);
+  }
+  const auto cross = [](const cv::Point& o, const cv::Point& a, const cv::Point& b) {
+    return static_cast<int64_t>(a.x - o.x) * (b.y - o.y) - static_cast<int64_t>(a.y - o.y) * (b.x - o.x);
+  };
+  // Two chains from the top row to the bottom one: down the left side, then up the right side.
+  hull.clear();
+  for (int row = 0; row < box.height; ++row) {
+    if (left[row] > right[row]) continue;
+    const cv::Point p(left[row], box.y + row);
+    while (hull.size() >= 2 && cross(hull[hull.size() - 2], hull.back(), p) >= 0) hull.pop_back();
+    hull.push_back(p);
+  }
+  const size_t lower = hull.size() + 1;
+  for (int row = box.height - 1; row >= 0; --row) {
+    if (left[row] > right[row]) continue;
+    const cv::Point p(right[row], box.y + row);
+    if (p == hull.back()) continue;
+    while (hull.size() >= lower && cross(hull[hull.size() - 2], hull.back(), p) >= 0) hull.pop_back();
+    hull.push_back(p);
+  }
+  if (hull.size() > 1 && hull.back() == hull.front()) hull.pop_back();
+}
+
+// Whether the pixels just outside `box` (coordinates without `binary`'s frame) are mostly light: a
+// marker's quiet zone, or what it stands on, is. Cheaper than the hull, which most contours here
+// (clutter) then do not get.
+bool LightAround(const cv::Mat& binary, const cv::Rect& box) {
+  // With the frame, the box's left column is box.x + 1: the one outside it is box.x.
+  const int x0 = box.x, y0 = box.y, x1 = box.x + box.width + 1, y1 = box.y + box.height + 1;
+  if (x1 >= binary.cols || y1 >= binary.rows) return false;
+  int light = 0;
+  const uchar *top = binary.ptr<uchar>(y0), *bottom = binary.ptr<uchar>(y1);
+  for (int x = x0; x <= x1; ++x) light += (top[x] == kBackground) + (bottom[x] == kBackground);
+  for (int y = y0 + 1; y < y1; ++y) {
+    const uchar* row = binary.ptr<uchar>(y);
+    light += (row[x0] == kBackground) + (row[x1] == kBackground);
+  }
+  const int total = 2 * (x1 - x0 + 1) + 2 * (y1 - y0 - 1);
+  return light >= kMinLightAround * total;
+}
+
+// HullQuad: the quad of a small contour's convex hull (see kHullContourPoints) into `approx`, where
+// the binary image around it looks like a marker; false otherwise.
+bool HullQuad(const std::vector<cv::Point>& contour, const cv::Rect& box, const cv::Mat& binary,
+              std::vector<cv::Point>& approx) {
+  thread_local std::vector<cv::Point> hull;
+  ContourHull(contour, box, hull);
+  if (hull.size() < 4) return false;
+  std::vector<cv::Point> quad;
+  cv::approxPolyDP(hull, quad, cv::arcLength(hull, true) * kSmallContourApproxRate, true);
+  if (quad.size() != 4 || !cv::isContourConvex(quad)) return false;
+  std::array<cv::Point2f, 4> corners;
+  for (int i = 0; i < 4; ++i) corners[i] = cv::Point2f(quad[i]);
+  if (!MarkerLikeBinary(binary, corners)) return false;
+  approx = quad;
+  return true;
+}
+
 // Quads in a thresholded region (`binary` with its 1-pixel zero frame; `roi` where it lies in its
 // level), filtered exactly as cv::aruco's _findMarkerContours filters them, plus: a quad closer than
 // `inner` to an edge of the region that is not the image's is dropped (that marker belongs to a
@@ -147,14 +271,24 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     // anyway (and no decodable cells): skip the polygon fit for the clutter's lines and arcs.
     if (16 * std::min(box.width, box.height) < n) continue;
     // Likewise a contour enclosing almost nothing (a diagonal line, an arc) cannot be a quad with
-    // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps.
-    if (64 * std::abs(outline.twice_area) < static_cast<int64_t>(n) * n) continue;
-    ApproximatePolygon(contour, n * config.polygonal_approx_accuracy_rate, approx);
-    if (approx.size() != 4 && !near && task.level == 0 && n < kSmallContourPoints) {
-      ApproximatePolygon(contour, n * std::max(config.polygonal_approx_accuracy_rate, kSmallContourApproxRate),
-                         approx);
+    // sides of at least min_corner_distance: a square's area is n^2/16 to n^2/8 in chain steps. (The
+    // outline of a marker whose border the threshold broke is one too: only its hull has a quad.)
+    const bool encloses_little = 64 * std::abs(outline.twice_area) < static_cast<int64_t>(n) * n;
+    const bool hull_allowed = !near && task.level == 0 && n < (encloses_little ? 2 : 1) * kHullContourPoints &&
+                              std::max(box.width, box.height) <= kHullMaxSide &&
+                              3 * std::min(box.width, box.height) >= std::max(box.width, box.height);
+    if (encloses_little && !hull_allowed) continue;
+    approx.clear();
+    if (!encloses_little) {
+      ApproximatePolygon(contour, n * config.polygonal_approx_accuracy_rate, approx);
+      if (approx.size() != 4 && !near && task.level == 0 && n < kSmallContourPoints) {
+        ApproximatePolygon(contour, n * std::max(config.polygonal_approx_accuracy_rate, kSmallContourApproxRate),
+                           approx);
+      }
     }
-    if (approx.size() != 4 || !cv::isContourConvex(approx)) continue;
+    if (approx.size() != 4 || !cv::isContourConvex(approx)) {
+      if (!hull_allowed || !LightAround(binary, box) || !HullQuad(contour, box, binary, approx)) continue;
+    }
     double min_dist_sq = 1e300;
     for (int j = 0; j < 4; ++j) {
       const cv::Point d = approx[j] - approx[(j + 1) % 4];

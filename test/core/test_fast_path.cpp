@@ -11,6 +11,9 @@
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
 
+#include <opencv2/imgproc.hpp>
+
+#include "candidates.hpp"
 #include "identify.hpp"
 #include "refine_edges.hpp"
 #include "scene.hpp"
@@ -58,6 +61,73 @@ const std::vector<Photo> kPhotos = {
     {"ubiquity_fiducials/tag_01_d7_14cm.png", "DICT_5X5_1000", 1},
     {"ubiquity_fiducials/tag_245-246_d7_14cm.png", "DICT_5X5_1000", 2},
 };
+
+// The level-0 search's quads of a whole grey frame (cv::aruco's default candidate filters).
+std::vector<internal::Quad> LevelZeroQuads(const cv::Mat& grey) {
+  const DetectorConfig config;
+  internal::Pyramid pyramid;
+  pyramid.Build(grey);
+  std::vector<internal::Quad> quads;
+  internal::RunTasks(pyramid, {internal::MakeTask(config, grey.size(), 0, cv::Rect(cv::Point(0, 0), grey.size()))},
+                     config, quads);
+  return quads;
+}
+
+// The quad of `quads` whose corners are all within `tolerance` px of `square`'s (any start), or null.
+const internal::Quad* QuadAt(const std::vector<internal::Quad>& quads, const std::array<cv::Point2f, 4>& square,
+                             double tolerance) {
+  for (const auto& q : quads) {
+    for (int shift = 0; shift < 4; ++shift) {
+      bool near = true;
+      for (int k = 0; k < 4; ++k) near = near && cv::norm(q.corners[(k + shift) % 4] - square[k]) <= tolerance;
+      if (near) return &q;
+    }
+  }
+  return nullptr;
+}
+
+// A small marker's black border cut by the threshold (a dim frame, see candidates.cpp's
+// kHullContourPoints): the outline runs through the gap into the marker, so no polygon fit of it is
+// a quad, and the search takes its convex hull's where the binary image looks like a marker's around
+// it (a dark ring, light outside and inside). Drawn here as 14-18 px square rings, 2 px wide, with
+// a 2 px gap in one side, on a bright background: each gives a quad at its outer corners (within a
+// pixel: the contour runs through the centres of the ring's outer pixels). Round rings broken the
+// same way, and three sides of a square drawn one pixel wide, give none.
+TEST(FastPath, BrokenSquareBorderGivesItsHullsQuad) {
+  cv::Mat grey(240, 320, CV_8UC1, cv::Scalar(200));
+  std::vector<std::array<cv::Point2f, 4>> squares;
+  for (int k = 0; k < 3; ++k) {
+    const int side = 14 + 2 * k, x = 30 + 90 * k, y = 40;
+    const cv::Rect outer(x, y, side, side);
+    cv::rectangle(grey, outer, cv::Scalar(40), cv::FILLED);
+    cv::rectangle(grey, cv::Rect(x + 2, y + 2, side - 4, side - 4), cv::Scalar(200), cv::FILLED);
+    // The gap: in the right side for the first, the bottom for the second, the left for the third.
+    const cv::Rect gaps[] = {{x + side - 2, y + side / 2 - 1, 2, 2}, {x + side / 2 - 1, y + side - 2, 2, 2},
+                             {x, y + side / 2 - 1, 2, 2}};
+    cv::rectangle(grey, gaps[k], cv::Scalar(200), cv::FILLED);
+    const float x1 = static_cast<float>(x + side - 1), y1 = static_cast<float>(y + side - 1);
+    squares.push_back({cv::Point2f(x, y), cv::Point2f(x1, y), cv::Point2f(x1, y1), cv::Point2f(x, y1)});
+  }
+  // Below them: round rings broken the same way (their hulls are round), and three sides of a square
+  // drawn one pixel wide (its hull's quad has no dark border ring).
+  for (int k = 0; k < 3; ++k) {
+    const cv::Point centre(40 + 90 * k, 160);
+    cv::circle(grey, centre, 7 + 2 * k, cv::Scalar(40), 2);
+    cv::rectangle(grey, cv::Rect(centre.x + 6 + 2 * k - 1, centre.y - 1, 4, 2), cv::Scalar(200), cv::FILLED);
+  }
+  cv::line(grey, cv::Point(290, 150), cv::Point(306, 150), cv::Scalar(40), 1);
+  cv::line(grey, cv::Point(290, 150), cv::Point(290, 166), cv::Scalar(40), 1);
+  cv::line(grey, cv::Point(306, 150), cv::Point(306, 166), cv::Scalar(40), 1);
+
+  const std::vector<internal::Quad> quads = LevelZeroQuads(grey);
+  for (size_t k = 0; k < squares.size(); ++k) {
+    EXPECT_NE(QuadAt(quads, squares[k], 1.0), nullptr) << "ring " << k;
+  }
+  for (const auto& q : quads) {
+    const cv::Point2f centre = (q.corners[0] + q.corners[1] + q.corners[2] + q.corners[3]) * 0.25f;
+    EXPECT_LT(centre.y, 120.0f) << "a quad on a round ring or on the lines, centre " << centre;
+  }
+}
 
 // The canonical image's sampling, four pixels at a time, against warpPerspective's INTER_NEAREST
 // arithmetic one pixel at a time (double, cvRound, 1 / 0 taken as 0): the same pixel for every
