@@ -8,6 +8,7 @@
 // bench/report.py. Needs a ROS master (bench/run.sh starts one).
 //
 //   bench_nodelet --data test/data --cache DIR --json FILE [--frames 6] [--sequence-frames 100] [--reps 5]
+//                 [--sets 'name substring|...']
 #include <arucotag/ros/messages.hpp>  // first: renames the generated ArucoTag message
 
 #include <algorithm>
@@ -169,6 +170,8 @@ int Main(int argc, char** argv) {
   if (!ros::master::check()) throw Error("no ROS master at " + ros::master::getURI() + " (bench/run.sh starts one)");
 
   std::vector<FrameSet> sets = AllSets(options);
+  sets.erase(std::remove_if(sets.begin(), sets.end(), [&](const FrameSet& s) { return !Selected(options.sets, s.name); }),
+             sets.end());
 
   ros::NodeHandle nh;
   const std::string detector = std::string(kNamespace) + "/detector";
