@@ -215,20 +215,18 @@ bool LightAround(const cv::Mat& binary, const cv::Rect& box) {
 }
 
 // HullQuad: the quad of a small contour's convex hull (see kHullContourPoints) into `approx`, where
-// the binary image around it looks like a marker; false otherwise.
+// the binary image around it looks like a marker; false otherwise (`approx` then holds whatever the
+// fit left: the caller moves on to the next contour).
 bool HullQuad(const std::vector<cv::Point>& contour, const cv::Rect& box, const cv::Mat& binary,
               std::vector<cv::Point>& approx) {
   thread_local std::vector<cv::Point> hull;
   ContourHull(contour, box, hull);
   if (hull.size() < 4) return false;
-  std::vector<cv::Point> quad;
-  cv::approxPolyDP(hull, quad, cv::arcLength(hull, true) * kSmallContourApproxRate, true);
-  if (quad.size() != 4 || !cv::isContourConvex(quad)) return false;
+  cv::approxPolyDP(hull, approx, cv::arcLength(hull, true) * kSmallContourApproxRate, true);
+  if (approx.size() != 4 || !cv::isContourConvex(approx)) return false;
   std::array<cv::Point2f, 4> corners;
-  for (int i = 0; i < 4; ++i) corners[i] = cv::Point2f(quad[i]);
-  if (!MarkerLikeBinary(binary, corners)) return false;
-  approx = quad;
-  return true;
+  for (int i = 0; i < 4; ++i) corners[i] = cv::Point2f(approx[i]);
+  return MarkerLikeBinary(binary, corners);
 }
 
 // Quads in a thresholded region (`binary` with its 1-pixel zero frame; `roi` where it lies in its
