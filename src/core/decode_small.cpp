@@ -89,8 +89,8 @@ constexpr double kFineGrowMaxPxPerCell = 2.25;
 constexpr double kFineGrowPx[] = {0.3, 0.5, 0.7, 0.9};
 // px: there, too, the contour grown by this much is the start of one more edge fit, after every
 // other framing failed (see DecodeSmall). Bench's dim distant set: 2 more markers read (40 -> 42 of
-// 60, AprilTag 3's count at decimate 1), whose contours lay 0.7-1.6 px inside, one side by far the
-// most.
+// 60, AprilTag 3's count at decimate 1), whose candidates' corners lay 0.7-2.2 px from the true ones,
+// unevenly.
 constexpr double kEdgeStartGrowPx = 0.5;
 
 // Bilinear grey value at (x, y); false outside the frame.
@@ -494,13 +494,15 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   // unreadable or as a clear code of no marker, and costs nothing more), with a marker's
   // surroundings (kMaxMisframedQuiet).
   if (plain != Reading::kMisframed || std::fabs(quiet_offset) > kMaxMisframedQuiet) return false;
+  // The quad with each side moved out by `px`.
+  const auto grown = [&h, side = MeanSide(quad)](double px) {
+    const double g = px / side;
+    return SubSquare(h, -g, -g, 1.0 + g, 1.0 + g);
+  };
   const bool fine = MeanSide(quad) < kFineGrowMaxPxPerCell * cells;
   const double* grow = fine ? kFineGrowPx : kGrowPx;
   const size_t grows = fine ? std::size(kFineGrowPx) : std::size(kGrowPx);
-  for (size_t k = 0; k < grows; ++k) {
-    const double g = grow[k] / MeanSide(quad);
-    hypotheses.push_back(SubSquare(h, -g, -g, 1.0 + g, 1.0 + g));
-  }
+  for (size_t k = 0; k < grows; ++k) hypotheses.push_back(grown(grow[k]));
   // Each side moved onto its own grey-level edge: a contour can be off by more on one side than a
   // uniform growth corrects (blur, tilt, a pixel of noise on the threshold).
   std::array<cv::Point2f, 4> edges = quad;
@@ -524,9 +526,8 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   // than the others, and the edge fit from there takes the inner edge of the border cells for the
   // square's; from the contour grown by kEdgeStartGrowPx it reaches the outer one.
   if (!fine) return false;
-  const double g = kEdgeStartGrowPx / MeanSide(quad);
-  std::array<cv::Point2f, 4> grown = Corners(SubSquare(h, -g, -g, 1.0 + g, 1.0 + g));
-  return RefineCornersOnEdges(grey, grown, cells) > 0 && read(SquareToQuad(grown));
+  std::array<cv::Point2f, 4> start = Corners(grown(kEdgeStartGrowPx));
+  return RefineCornersOnEdges(grey, start, cells) > 0 && read(SquareToQuad(start));
 }
 
 size_t SmallCellEstimates() { return cell_estimates; }

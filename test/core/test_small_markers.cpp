@@ -321,38 +321,6 @@ TEST(SmallMarkers, SecondChanceCorrectsTwoCellsOfTag36h11AndNoneOfFourByFour) {
   }
 }
 
-// Calls read(grey, truth, id, view) for dim tag36h11 markers at each of `ranges` (m), facing the
-// rover camera or tilted 30 degrees, in three rolls: a third of the light and 0.6 of the contrast,
-// the distant set's blur and noise, as bench's dim distant set renders them. `truth`: the black
-// square's corners.
-template <class Read>
-void ForDimTag36h11Views(const std::vector<double>& ranges, Read&& read) {
-  const sim::Camera camera = test::RoverCamera();
-  int views = 0;
-  for (const double range : ranges) {
-    for (const double tilt : {0.0, 30.0}) {
-      for (const double roll : {20.0, 65.0, 130.0}) {
-        const int id = (17 + 61 * views) % 587;
-        ++views;
-        const sim::Marker marker =
-            sim::FacingCamera(id, 0.15, {0.1 * range, -0.05 * range, range}, tilt, 0.3 * tilt, roll);
-        sim::RenderOptions options;
-        options.dictionary = cv::aruco::DICT_APRILTAG_36h11;
-        options.seed = views;
-        options.blur_sigma = 0.8;
-        options.noise_sigma = 3.0;
-        options.brightness = 0.35;
-        options.contrast = 0.6;
-        cv::Mat grey;
-        PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
-        const std::string view = std::to_string(range) + " m, tilt " + std::to_string(tilt) + ", roll " +
-                                 std::to_string(roll);
-        read(grey, sim::ProjectCorners(camera, marker), id, view);
-      }
-    }
-  }
-}
-
 // The quad whose side k (corner k to corner k + 1) lies inside[k] px inside the square `corners`.
 std::array<cv::Point2f, 4> Inset(const std::array<cv::Point2f, 4>& corners, const std::array<float, 4>& inside) {
   const cv::Point2f centre = 0.25f * (corners[0] + corners[1] + corners[2] + corners[3]);
@@ -373,25 +341,52 @@ std::array<cv::Point2f, 4> Inset(const std::array<cv::Point2f, 4>& corners, cons
   return quad;
 }
 
+// How many of the framings `insets` (Inset) of dim tag36h11 markers DecodeSmall reads, every reading
+// the marker's own id. The markers: at each of `ranges` (m), facing the rover camera or tilted 30
+// degrees, in three rolls, with a third of the light and 0.6 of the contrast, the distant set's blur
+// and noise, as bench's dim distant set renders them.
+int DimTag36h11FramingsRead(const std::vector<double>& ranges, const std::vector<std::array<float, 4>>& insets) {
+  const auto tag36h11 = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11);
+  const sim::Camera camera = test::RoverCamera();
+  int read = 0, views = 0;
+  for (const double range : ranges) {
+    for (const double tilt : {0.0, 30.0}) {
+      for (const double roll : {20.0, 65.0, 130.0}) {
+        const int id = (17 + 61 * views) % 587;
+        ++views;
+        const sim::Marker marker =
+            sim::FacingCamera(id, 0.15, {0.1 * range, -0.05 * range, range}, tilt, 0.3 * tilt, roll);
+        sim::RenderOptions options;
+        options.dictionary = cv::aruco::DICT_APRILTAG_36h11;
+        options.seed = views;
+        options.blur_sigma = 0.8;
+        options.noise_sigma = 3.0;
+        options.brightness = 0.35;
+        options.contrast = 0.6;
+        cv::Mat grey;
+        PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
+        const std::array<cv::Point2f, 4> truth = sim::ProjectCorners(camera, marker);
+        for (size_t k = 0; k < insets.size(); ++k) {
+          internal::SmallMarker small;
+          if (!internal::DecodeSmall(grey, Inset(truth, insets[k]), *tag36h11, 1, false, small)) continue;
+          EXPECT_EQ(small.id, id) << range << " m, tilt " << tilt << ", roll " << roll << ", framing " << k;
+          ++read;
+        }
+      }
+    }
+  }
+  return read;
+}
+
 // Dim tag36h11 markers of 10-15 px (1.3-1.9 px cells), each framed by its black square with every
 // side 0.3-1.1 px inside, as a dim marker's contour lies: under 2.25 px per cell the other framings
 // grow it in 0.2 px steps up to 0.9 px (kFineGrowPx). Measured: 28 of 90 framings read, 23 with the
 // 0.5 and 0.8 px growths alone; none reads as another id.
 TEST(SmallMarkers, DimTag36h11ReadFromContoursAFractionOfACellInside) {
-  const auto tag36h11 = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11);
-  int read = 0, framings = 0;
-  ForDimTag36h11Views({10.0, 11.5, 13.0}, [&](const cv::Mat& grey, const std::array<cv::Point2f, 4>& truth, int id,
-                                              const std::string& view) {
-    for (const float inside : {0.3f, 0.5f, 0.7f, 0.9f, 1.1f}) {
-      internal::SmallMarker small;
-      if (internal::DecodeSmall(grey, Inset(truth, {inside, inside, inside, inside}), *tag36h11, 1, false, small)) {
-        EXPECT_EQ(small.id, id) << view << ", " << inside << " px inside";
-        ++read;
-      }
-      ++framings;
-    }
-  });
-  std::printf("dim tag36h11 of 10-15 px framed 0.3-1.1 px inside: %d of %d read\n", read, framings);
+  std::vector<std::array<float, 4>> insets;
+  for (const float inside : {0.3f, 0.5f, 0.7f, 0.9f, 1.1f}) insets.push_back({inside, inside, inside, inside});
+  const int read = DimTag36h11FramingsRead({10.0, 11.5, 13.0}, insets);
+  std::printf("dim tag36h11 of 10-15 px framed 0.3-1.1 px inside: %d of 90 read\n", read);
   EXPECT_GE(read, 26);
 }
 
@@ -400,22 +395,10 @@ TEST(SmallMarkers, DimTag36h11ReadFromContoursAFractionOfACellInside) {
 // the far side, the one from the contour grown by 0.5 px (kEdgeStartGrowPx) reads. Measured: 43 of
 // 108 framings read, 24 without that last framing.
 TEST(SmallMarkers, DimTag36h11ReadFromContoursWithOneSideFarInside) {
-  const auto tag36h11 = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11);
-  const std::array<float, 4> insets[] = {{0.2f, 0.6f, 1.4f, 0.6f}, {0.6f, 0.2f, 0.6f, 1.4f}, {1.4f, 0.6f, 0.2f, 0.6f},
-                                         {0.6f, 1.4f, 0.6f, 0.2f}, {0.3f, 0.3f, 1.6f, 0.3f}, {1.6f, 0.3f, 0.3f, 0.3f}};
-  int read = 0, framings = 0;
-  ForDimTag36h11Views({9.0, 10.0, 11.5}, [&](const cv::Mat& grey, const std::array<cv::Point2f, 4>& truth, int id,
-                                             const std::string& view) {
-    for (const auto& inside : insets) {
-      internal::SmallMarker small;
-      if (internal::DecodeSmall(grey, Inset(truth, inside), *tag36h11, 1, false, small)) {
-        EXPECT_EQ(small.id, id) << view << ", framing " << framings % 6;
-        ++read;
-      }
-      ++framings;
-    }
-  });
-  std::printf("dim tag36h11 of 12-17 px framed with one side far inside: %d of %d read\n", read, framings);
+  const int read = DimTag36h11FramingsRead(
+      {9.0, 10.0, 11.5}, {{0.2f, 0.6f, 1.4f, 0.6f}, {0.6f, 0.2f, 0.6f, 1.4f}, {1.4f, 0.6f, 0.2f, 0.6f},
+                          {0.6f, 1.4f, 0.6f, 0.2f}, {0.3f, 0.3f, 1.6f, 0.3f}, {1.6f, 0.3f, 0.3f, 0.3f}});
+  std::printf("dim tag36h11 of 12-17 px framed with one side far inside: %d of 108 read\n", read);
   EXPECT_GE(read, 36);
 }
 
