@@ -22,8 +22,9 @@
 //                [--misses FILE]
 //
 // --misses FILE writes one CSV row per expected marker with exact corners (rendered sets) and per
-// detector, from the scored pass: its shortest and longest side (px), and whether it was found, so
-// that recall can be broken down by size and obliqueness.
+// detector, from the scored pass: its shortest and longest side (px), whether it was found and, when
+// found, its worst corner's error (px), so that recall and accuracy can be broken down by size and
+// obliqueness.
 // --threads sets OpenCV's threads (bench/run.sh: 1); AprilTag always runs on 1 thread.
 // --all-cores-reps N times the OpenCV-threaded detectors N more passes at all hardware threads.
 // Methods rotate frame by frame so that load from other processes hits all of them alike.
@@ -224,6 +225,7 @@ struct MarkerOutcome {
   int frame = 0, id = -1;
   double min_side = 0.0, max_side = 0.0;  // px
   bool found = false;
+  double worst_corner_error = -1.0;  // px, of a found marker; < 0: not found
 };
 
 struct SetResult {
@@ -451,6 +453,10 @@ void Pass(const FrameSet& set, Lineup& l, int reps, bool all_cores, SetResult& r
             o.min_side = std::min(o.min_side, side);
             o.max_side = std::max(o.max_side, side);
           }
+          const auto errors = s.marker_errors.find({static_cast<int>(k), static_cast<int>(&t - frame.truth.data())});
+          if (errors != s.marker_errors.end()) {
+            o.worst_corner_error = *std::max_element(errors->second.begin(), errors->second.end());
+          }
           r.outcomes.push_back(o);
         }
         if (m.key == "ours") {
@@ -605,11 +611,13 @@ void WriteJson(const std::vector<SetResult>& results, const std::string& path, i
 
 void WriteMisses(const std::vector<SetResult>& results, const std::string& path) {
   std::ofstream out(path);
-  out << "set,method,frame,id,min_side_px,max_side_px,found\n";
+  out << "set,method,frame,id,min_side_px,max_side_px,found,worst_corner_error_px\n";
   for (const auto& r : results) {
     for (const auto& o : r.outcomes) {
       out << '"' << r.name << "\"," << o.method << ',' << o.frame << ',' << o.id << ',' << o.min_side << ','
-          << o.max_side << ',' << (o.found ? 1 : 0) << '\n';
+          << o.max_side << ',' << (o.found ? 1 : 0) << ',';
+      if (o.worst_corner_error >= 0.0) out << o.worst_corner_error;
+      out << '\n';
     }
   }
 }
