@@ -177,7 +177,9 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     return cv::Point2d(d.y, -d.x) * sign;  // right of p->q for a positively wound quad
   };
   // The black border's width across an edge is one cell of the neighbouring edge (perspective
-  // makes cells narrower on one pair of sides).
+  // makes cells narrower on one pair of sides) times the sine of the corner's angle: a sheared
+  // (oblique) border is thinner across its edge than along the neighbouring one, and profiles that
+  // reach by its width along run into the inner bits.
   const auto border_across = [cells](const cv::Point2d& a, const cv::Point2d& b) { return cv::norm(b - a) / cells; };
 
   std::array<cv::Point2f, 4> refined = corners;
@@ -188,10 +190,12 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     const double border_next = border_across(prev, c), border_prev = border_across(c, next);
     const cv::Point2d a = next - c, b = prev - c;
     const double angle = std::acos(std::clamp(a.dot(b) / (cv::norm(a) * cv::norm(b)), -1.0, 1.0));
+    const double sheared = std::sin(angle);
     Line to_next, to_prev;
     cv::Point2d p;
-    if (!FitEdgeNearCorner(grey, c, next, outward_of(c, next), border_next, angle, to_next) ||
-        !FitEdgeNearCorner(grey, c, prev, outward_of(prev, c), border_prev, angle, to_prev) || !Intersect(to_next, to_prev, p) ||
+    if (!FitEdgeNearCorner(grey, c, next, outward_of(c, next), border_next * sheared, angle, to_next) ||
+        !FitEdgeNearCorner(grey, c, prev, outward_of(prev, c), border_prev * sheared, angle, to_prev) ||
+        !Intersect(to_next, to_prev, p) ||
         cv::norm(p - c) > max_move) {
       continue;  // keep the detector's corner
     }
