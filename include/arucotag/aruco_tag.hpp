@@ -49,7 +49,8 @@ struct PnpResult {
   double ambiguity = std::numeric_limits<double>::quiet_NaN();
   /// Covariance of each solution (optical frame): corner_sigma^2 (J^T J)^-1 with J the reprojection
   /// Jacobian at that solution. First-order: it describes the neighbourhood of its own solution and
-  /// says nothing about the flip, which `ambiguity` reports.
+  /// says nothing about the flip, which `ambiguity` reports (the tag's covariance under PnP adds the
+  /// other solution by its likelihood: see ResolvePose).
   std::array<PoseCovariance, 2> covariance{{UnknownCovariance(), UnknownCovariance()}};
   /// Corner noise the covariances assume (image px, per coordinate): the residual of the best
   /// solution (2 degrees of freedom) pooled with the corner refinement's accuracy as a prior.

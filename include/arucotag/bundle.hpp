@@ -69,7 +69,8 @@ struct BundlePose {
   cv::Vec3d rvec{};  ///< bundle -> camera rotation (Rodrigues)
   cv::Vec3d tvec{};  ///< bundle origin in the camera optical frame (m)
   /// Covariance of (tvec, rotation) in the optical frame (see PoseCovariance): corner_sigma^2
-  /// (J^T J)^-1 with J the reprojection Jacobian of every corner used.
+  /// (J^T J)^-1 with J the reprojection Jacobian of every corner used; with one face seen and no
+  /// cloud, widened by that face's other planar solution as a tag's is (see ResolvePose, kPnp).
   PoseCovariance covariance = UnknownCovariance();
   /// Ids of the members whose corners were used, one entry per member (an id shared by several
   /// faces appears once per face seen), in the bundle's member order.

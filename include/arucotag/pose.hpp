@@ -160,7 +160,11 @@ int FusedChoice(const ArucoTag& tag);
 /// Sets the tag's pose (rvec, tvec, distance, yaw, pose_source, reprojection_error,
 /// depth_disagreement, covariance, orientation_measured) from tag.pnp and tag.cloud, preferring
 /// `wanted`:
-/// - kPnp: the PnP solution with the lower reprojection error, and its covariance.
+/// - kPnp: the PnP solution with the lower reprojection error. Its covariance is the second moment,
+///   about it, of both planar solutions weighed by their likelihoods under twice the corner noise
+///   (each with its own first-order covariance): where the corners cannot rule out the other
+///   solution (small, near-frontal markers) the covariance spans it, elsewhere the rival's weight is
+///   negligible and it is the pick's own.
 /// - kPointCloud: the cloud's centre and orientation with the cloud's covariance (PnP's rotation
 ///   and rotation covariance fill in when the cloud could not recover one; with neither, the
 ///   orientation is a guess facing the camera and orientation_measured is false).

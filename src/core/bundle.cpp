@@ -463,8 +463,26 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
   result.tvec = chosen.tvec;
   result.reprojection_error = std::sqrt(chosen.sum_sq / coordinates);
   result.corner_sigma = internal::PooledCornerSigma(chosen.sum_sq, coordinates - 6.0, side_px);
-  const cv::Mat jtj = chosen.jacobian.t() * chosen.jacobian;
-  result.covariance = internal::CovarianceFromNormalMatrix(cv::Matx66d(jtj.ptr<double>()), result.corner_sigma);
+  const auto covariance = [&](const Hypothesis& h) {
+    const cv::Mat jtj = h.jacobian.t() * h.jacobian;
+    return internal::CovarianceFromNormalMatrix(cv::Matx66d(jtj.ptr<double>()), result.corner_sigma);
+  };
+  result.covariance = covariance(chosen);
+  if (chosen.matches.size() == 1 && result.pose_source == PoseSource::kPnp) {
+    // One face and no plane: its other planar solution stays possible, as for the tag (ResolvePose).
+    for (const auto& h : hypotheses) {
+      if (h.matches.size() != 1 || h.seed_sighting != chosen.seed_sighting || h.seed_member != chosen.seed_member ||
+          h.seed_solution == chosen.seed_solution) {
+        continue;
+      }
+      Hypothesis rival = h;
+      if (!solver.Evaluate(rival)) break;
+      result.covariance = internal::CovarianceWithRival(
+          {chosen.rvec, chosen.tvec, result.covariance}, {rival.rvec, rival.tvec, covariance(rival)},
+          internal::RivalWeight(chosen.sum_sq, rival.sum_sq, result.corner_sigma));
+      break;
+    }
+  }
   return result;
 }
 

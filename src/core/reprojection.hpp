@@ -32,4 +32,20 @@ double PooledCornerSigma(double sum_sq, double residual_dof, double side_px);
 /// sigma^2 (J^T J)^-1 from the normal matrix J^T J; unknown when it is singular.
 PoseCovariance CovarianceFromNormalMatrix(const cv::Matx66d& jtj, double sigma);
 
+/// How likely the rival planar solution is against the pick (its posterior weight in [0, 0.5] when
+/// the pick fits better), from the two least-squares residuals `pick_sum_sq` and `rival_sum_sq`
+/// (image px^2) under the corner noise `corner_sigma` (px) that the covariances assume.
+double RivalWeight(double pick_sum_sq, double rival_sum_sq, double corner_sigma);
+
+/// One planar solution with its covariance (see PoseCovariance).
+struct PoseEstimate {
+  cv::Vec3d rvec, tvec;
+  PoseCovariance covariance;
+};
+
+/// The covariance about `pick` of the mixture of `pick` and `rival` weighed 1 - weight : weight,
+/// each with its own covariance: what the pick's own neighbourhood misses when the corners cannot
+/// rule out the other planar solution. `pick.covariance` itself when the weight is negligible.
+PoseCovariance CovarianceWithRival(const PoseEstimate& pick, const PoseEstimate& rival, double weight);
+
 }  // namespace arucotag::internal
