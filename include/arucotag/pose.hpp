@@ -166,13 +166,14 @@ int FusedChoice(const ArucoTag& tag);
 ///   solution (small, near-frontal markers) the covariance spans it, elsewhere the rival's weight is
 ///   negligible and it is the pick's own.
 /// - kPointCloud: the cloud's centre and orientation with the cloud's covariance (PnP's rotation
-///   and rotation covariance fill in when the cloud could not recover one; with neither, the
-///   orientation is a guess facing the camera and orientation_measured is false).
+///   and rotation covariance, as kPnp's, fill in when the cloud could not recover one; with neither,
+///   the orientation is a guess facing the camera and orientation_measured is false).
 /// - kFused: the IPPE solution FusedChoice picks (no flipped poses), with depth_disagreement between
 ///   PnP and cloud ranges, then updated by the cloud's centre as a Kalman measurement weighed by the
 ///   two covariances (PnP's centre-rotation correlation carries it into the rotation too); a centre
 ///   more than the chi-square 99.9 % gate away (another surface, a stale cloud) is left out and the
-///   pose and covariance are that PnP solution's.
+///   pose and covariance are that PnP solution's. A cloud without a plane leaves the flip to the
+///   corners: the covariance starts from kPnp's.
 /// Falls back to whatever is available when `wanted` is not; kNone clears the pose. Returns the
 /// source actually used.
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted);

@@ -767,6 +767,16 @@ bool FuseCentre(const cv::Vec3d& centre, const PoseCovariance& centre_covariance
   return true;
 }
 
+// The covariance of PnP's pick (solution 0) with its rival planar solution weighed in by the corners'
+// likelihood of it (internal::CovarianceWithRival).
+PoseCovariance PickCovariance(const PnpResult& pnp) {
+  if (pnp.solutions < 2) return pnp.covariance[0];
+  const double weight =
+      internal::RivalWeight(8.0 * pnp.rms[0] * pnp.rms[0], 8.0 * pnp.rms[1] * pnp.rms[1], pnp.corner_sigma);
+  return internal::CovarianceWithRival({pnp.rvec[0], pnp.tvec[0], pnp.covariance[0]},
+                                       {pnp.rvec[1], pnp.tvec[1], pnp.covariance[1]}, weight);
+}
+
 }  // namespace
 
 PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
@@ -792,14 +802,7 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       tag.rvec = tag.pnp.rvec[0];
       tag.tvec = tag.pnp.tvec[0];
       tag.reprojection_error = tag.pnp.rms[0];
-      tag.covariance = tag.pnp.covariance[0];
-      if (tag.pnp.solutions == 2) {
-        const double weight = internal::RivalWeight(8.0 * tag.pnp.rms[0] * tag.pnp.rms[0],
-                                                    8.0 * tag.pnp.rms[1] * tag.pnp.rms[1], tag.pnp.corner_sigma);
-        tag.covariance = internal::CovarianceWithRival({tag.pnp.rvec[0], tag.pnp.tvec[0], tag.pnp.covariance[0]},
-                                                       {tag.pnp.rvec[1], tag.pnp.tvec[1], tag.pnp.covariance[1]},
-                                                       weight);
-      }
+      tag.covariance = PickCovariance(tag.pnp);
       break;
     case PoseSource::kPointCloud: {
       tag.tvec = tag.cloud.centre;
@@ -810,9 +813,10 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       } else if (pnp) {
         cv::Rodrigues(tag.pnp.rvec[0], rotation);
         // Two independent measurements: the cloud's centre, PnP's rotation.
+        const PoseCovariance pick = PickCovariance(tag.pnp);
         for (int i = 0; i < 6; ++i) {
           for (int j = 0; j < 6; ++j) {
-            if (i >= 3 || j >= 3) tag.covariance(i, j) = i >= 3 && j >= 3 ? tag.pnp.covariance[0](i, j) : 0.0;
+            if (i >= 3 || j >= 3) tag.covariance(i, j) = i >= 3 && j >= 3 ? pick(i, j) : 0.0;
           }
         }
       } else {
@@ -827,7 +831,8 @@ PoseSource ResolvePose(ArucoTag& tag, PoseSource wanted) {
       tag.rvec = tag.pnp.rvec[best];
       tag.tvec = tag.pnp.tvec[best];
       tag.reprojection_error = tag.pnp.rms[best];
-      tag.covariance = tag.pnp.covariance[best];
+      // A cloud without a plane says nothing about the flip: the corners' rival stays as likely.
+      tag.covariance = tag.cloud.has_normal ? tag.pnp.covariance[best] : PickCovariance(tag.pnp);
       tag.depth_disagreement = std::abs(cv::norm(tag.tvec) - cv::norm(tag.cloud.centre));
       // The cloud's centre then updates the chosen solution, weighed by the two covariances
       // (through PnP's centre-rotation correlation it moves the rotation too); a centre that

@@ -148,7 +148,7 @@ TEST(PoseCovariance, AmbiguousPickCoversItsRival) {
   config.default_side_length = 0.2;
   const Detector detector(config);
   cv::RNG rng(5);
-  int found = 0, wrong = 0, outside = 0, outside_alone = 0;
+  int found = 0, wrong = 0, outside = 0, outside_alone = 0, outside_fused = 0;
   for (int f = 0; f < 80; ++f) {
     const double range = rng.uniform(8.0, 13.0);
     const sim::Marker marker = sim::RandomMarker(rng, camera, 5, 0.2, range, range, rng.uniform(0.0, 15.0));
@@ -169,12 +169,22 @@ TEST(PoseCovariance, AmbiguousPickCoversItsRival) {
     const cv::Vec3d e_r = RotationResidual(tag.rvec, marker.rvec);
     outside += Nees(tag.covariance, 3, e_r) > 16.27;  // chi-square 3 dof, 99.9 %
     outside_alone += Nees(tag.pnp.covariance[0], 3, e_r) > 16.27;
+    // A cloud too sparse for a plane (its centre only) says nothing about the flip either.
+    ArucoTag fused = tag;
+    fused.cloud.valid = true;
+    fused.cloud.points = 20;
+    fused.cloud.centre = marker.tvec;
+    fused.cloud.covariance = PoseCovariance::eye() * 1e-4;
+    ASSERT_EQ(ResolvePose(fused, PoseSource::kFused), PoseSource::kFused);
+    outside_fused += Nees(fused.covariance, 3, RotationResidual(fused.rvec, marker.rvec)) > 16.27;
   }
-  std::printf("%d found, %d picks wrong; truth outside the 99.9 %% ellipsoid: %d with the rival, %d without\n", found,
-              wrong, outside, outside_alone);
+  std::printf("%d found, %d picks wrong; truth outside the 99.9 %% ellipsoid: %d with the rival (%d fused with a "
+              "centre), %d without\n",
+              found, wrong, outside, outside_fused, outside_alone);
   ASSERT_GE(found, 70);
   EXPECT_GT(wrong, found / 10) << "the scenes must be ambiguous to test anything";
   EXPECT_LE(outside, found / 20);
+  EXPECT_LE(outside_fused, found / 20);
   EXPECT_GT(outside_alone, 2 * outside);
 }
 
