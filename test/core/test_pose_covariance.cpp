@@ -68,6 +68,19 @@ TEST(PoseCovariance, JacobianPredictsMonteCarloScatter) {
   }
 }
 
+// A rendered, preprocessed view of `marker` with sensor noise and blur drawn from `rng` up to the
+// given sigmas (grey levels, px).
+cv::Mat NoisyView(const sim::Camera& camera, const sim::Marker& marker, int seed, cv::RNG& rng, double max_noise,
+                  double max_blur) {
+  sim::RenderOptions options;
+  options.seed = seed;
+  options.noise_sigma = rng.uniform(0.0, max_noise);
+  options.blur_sigma = rng.uniform(0.0, max_blur);
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
+  return grey;
+}
+
 // Rendered frames, 1-15 m, 0-70 degrees, blur and sensor noise, the whole pipeline (detector corners,
 // PnP, the covariance with its estimated corner noise): the mean NEES of translation and of rotation
 // lies within [0.5, 2] x 3 per range bin. Flips (rotation error over 10 degrees) are counted apart:
@@ -91,12 +104,7 @@ TEST(PoseCovariance, PnpNeesPerRangeBin) {
     const double range = rng.uniform(1.0, 15.0);
     const double tilt = rng.uniform(0.0, 70.0);
     const sim::Marker marker = sim::RandomMarker(rng, camera, 5, side, range, range, tilt);
-    sim::RenderOptions options;
-    options.seed = f + 1;
-    options.noise_sigma = rng.uniform(0.0, 4.0);
-    options.blur_sigma = rng.uniform(0.0, 1.2);
-    cv::Mat grey;
-    PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
+    const cv::Mat grey = NoisyView(camera, marker, f + 1, rng, 4.0, 1.2);
     int b = 0;
     while (b < 3 && marker.tvec[2] >= edges[b + 1]) ++b;
     Bin& bin = bins[b];
@@ -152,12 +160,7 @@ TEST(PoseCovariance, AmbiguousPickCoversItsRival) {
   for (int f = 0; f < 80; ++f) {
     const double range = rng.uniform(8.0, 13.0);
     const sim::Marker marker = sim::RandomMarker(rng, camera, 5, 0.2, range, range, rng.uniform(0.0, 15.0));
-    sim::RenderOptions options;
-    options.seed = f + 1;
-    options.noise_sigma = rng.uniform(0.0, 3.0);
-    options.blur_sigma = rng.uniform(0.0, 1.0);
-    cv::Mat grey;
-    PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
+    const cv::Mat grey = NoisyView(camera, marker, f + 1, rng, 3.0, 1.0);
     auto tags = Detect(grey, detector);
     if (tags.size() != 1 || tags[0].id != 5 || !EstimatePoseFromPNP(model, tags[0])) continue;
     const ArucoTag& tag = tags[0];
