@@ -280,7 +280,10 @@ PoseCovariance CovarianceWithRival(const PoseEstimate& pick, const PoseEstimate&
   cv::Rodrigues(r1 * r0.t(), turn);
   const cv::Vec3d shift = rival.tvec - pick.tvec;
   const cv::Vec<double, 6> apart(shift[0], shift[1], shift[2], turn[0], turn[1], turn[2]);
-  return (1.0 - weight) * pick.covariance + weight * (rival.covariance + apart * apart.t());
+  // A rival whose own neighbourhood is unknown (a singular Jacobian) still counts by its distance.
+  const PoseCovariance& around = cv::checkRange(rival.covariance) ? rival.covariance : pick.covariance;
+  const PoseCovariance mixed = (1.0 - weight) * pick.covariance + weight * (around + apart * apart.t());
+  return cv::checkRange(mixed) ? mixed : pick.covariance;
 }
 
 }  // namespace internal

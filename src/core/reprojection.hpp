@@ -45,7 +45,8 @@ struct PoseEstimate {
 
 /// The covariance about `pick` of the mixture of `pick` and `rival` weighed 1 - weight : weight,
 /// each with its own covariance: what the pick's own neighbourhood misses when the corners cannot
-/// rule out the other planar solution. `pick.covariance` itself when the weight is negligible.
+/// rule out the other planar solution. `pick.covariance` itself when the weight is negligible or a
+/// pose is not finite; the pick's own covariance stands in for an unknown rival's.
 PoseCovariance CovarianceWithRival(const PoseEstimate& pick, const PoseEstimate& rival, double weight);
 
 }  // namespace arucotag::internal

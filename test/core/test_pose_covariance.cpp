@@ -223,6 +223,26 @@ TEST(PoseCovariance, AmbiguityIsTheRatioOfThePlanarPair) {
   }
 }
 
+// A rival planar solution whose own covariance is unknown (a singular Jacobian) still widens the
+// pick's by its distance, and never turns a measured pose's covariance into NaN.
+TEST(PoseCovariance, RivalWithUnknownCovarianceStillCounts) {
+  const sim::Camera camera = test::RoverCamera();
+  ArucoTag tag = NoisyCorners(camera, sim::FacingCamera(3, 0.15, {0.3, 0.1, 8.0}, 5.0, 0.0, 0.0), 0.05, 3);
+  ASSERT_TRUE(EstimatePoseFromPNP(test::ToModel(camera), tag));
+  ASSERT_EQ(tag.pnp.solutions, 2);
+  const PoseCovariance with_rival = tag.covariance;
+  tag.pnp.covariance[1] = UnknownCovariance();
+  ASSERT_EQ(ResolvePose(tag, PoseSource::kPnp), PoseSource::kPnp);
+  for (int i = 0; i < 36; ++i) EXPECT_TRUE(std::isfinite(tag.covariance.val[i])) << i;
+  double wider = 0.0;
+  for (int i = 3; i < 6; ++i) {
+    EXPECT_GE(tag.covariance(i, i), tag.pnp.covariance[0](i, i)) << i;
+    wider += tag.covariance(i, i) - tag.pnp.covariance[0](i, i);
+  }
+  EXPECT_GT(wider, 0.0) << "an ambiguous pick's rival counts";
+  for (int i = 3; i < 6; ++i) EXPECT_NEAR(tag.covariance(i, i), with_rival(i, i), 0.5 * with_rival(i, i)) << i;
+}
+
 // OpenCV's IPPE puts both solutions about 180 degrees off for an exactly frontal marker at the
 // image centre; the refinement finds the truth without making the pair one solution twice.
 TEST(PoseCovariance, DegenerateIppeKeepsTwoSolutions) {
