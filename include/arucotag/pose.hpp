@@ -48,6 +48,15 @@ struct CameraModel {
   DistortionModel distortion_model = DistortionModel::kRadialTangential;
   /// Image pixels -> the pixels K and distortion were calibrated in (identity without binning/ROI).
   PixelMapping pixels;
+  /// px (image pixels, per coordinate): corner error the camera adds to the detector's own, which
+  /// no frame shows: the calibration's residual lens-model error and what compression moves. The
+  /// pose covariances add it (in quadrature) to the corner noise measured on renders, which have
+  /// exact intrinsics and no loss. The default was measured on the sample recording (JPEG quality
+  /// 80, exact intrinsics): 0.026-0.046 px of corner error beyond a common shift, where the renders'
+  /// calibration assumes 0.006-0.009 px. Set it to your calibration's reprojection RMS when that is
+  /// larger; 0 for a lossless render through the very intrinsics.
+  double corner_noise = kDefaultCornerNoise;
+  static constexpr double kDefaultCornerNoise = 0.05;
 
   /// From K and distortion (a raw image through a pinhole lens).
   static CameraModel FromIntrinsics(const cv::Matx33d& K, const std::vector<double>& distortion);
@@ -58,7 +67,8 @@ struct CameraModel {
 
   /// Throws arucotag::Error when fx or fy is not a positive finite number, another entry of K is
   /// not finite, K's last row is not 0 0 1, the distortion count is not one the model accepts, a
-  /// coefficient is not finite, or the pixel mapping's scale is not positive and finite.
+  /// coefficient is not finite, the pixel mapping's scale is not positive and finite, or
+  /// corner_noise is negative or not finite.
   void Validate() const;
 
   /// Image pixels (this image, after binning/ROI) of points given in the marker frame, seen with

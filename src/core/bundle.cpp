@@ -462,7 +462,7 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
   result.rvec = chosen.rvec;
   result.tvec = chosen.tvec;
   result.reprojection_error = std::sqrt(chosen.sum_sq / coordinates);
-  result.corner_sigma = internal::PooledCornerSigma(chosen.sum_sq, coordinates - 6.0, side_px);
+  result.corner_sigma = internal::PooledCornerSigma(chosen.sum_sq, coordinates - 6.0, side_px, camera.corner_noise);
   const auto covariance = [&](const Hypothesis& h) {
     const cv::Mat jtj = h.jacobian.t() * h.jacobian;
     return internal::CovarianceFromNormalMatrix(cv::Matx66d(jtj.ptr<double>()), result.corner_sigma);

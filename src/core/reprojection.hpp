@@ -25,9 +25,10 @@ bool ProjectWithJacobian(const CameraModel& camera, const std::vector<cv::Point3
                          const cv::Vec3d& tvec, std::vector<cv::Point2d>& projected, cv::Mat& jacobian);
 
 /// Corner noise (image px per coordinate) from a least-squares residual `sum_sq` with
-/// `residual_dof` degrees of freedom, pooled with the prior the renders calibrated for markers of
-/// mean side `side_px` (image px).
-double PooledCornerSigma(double sum_sq, double residual_dof, double side_px);
+/// `residual_dof` degrees of freedom, pooled with a prior: the corner noise the renders calibrated
+/// for markers of mean side `side_px` (image px) and the camera's own `camera_noise` (px,
+/// CameraModel::corner_noise), added in quadrature.
+double PooledCornerSigma(double sum_sq, double residual_dof, double side_px, double camera_noise);
 
 /// sigma^2 (J^T J)^-1 from the normal matrix J^T J; unknown when it is singular.
 PoseCovariance CovarianceFromNormalMatrix(const cv::Matx66d& jtj, double sigma);

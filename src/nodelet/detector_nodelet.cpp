@@ -563,7 +563,9 @@ std::optional<CameraModel> DetectorNodelet::CameraFor(const ros::Time& stamp, co
                                   std::to_string(params_.camera_info_max_age) + " s): using it anyway");
   }
   try {
-    return CameraModelFromInfo(*latest_info_, params_.rectified, size);
+    CameraModel camera = CameraModelFromInfo(*latest_info_, params_.rectified, size);
+    camera.corner_noise = params_.corner_noise;
+    return camera;
   } catch (const std::exception& e) {
     ++counts_.without_info;
     Fail("camera_info", std::string("no poses: ") + e.what());

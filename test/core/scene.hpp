@@ -22,8 +22,12 @@ inline sim::Camera RoverCamera(bool distorted = false) {
   return camera;
 }
 
+/// The model of a render: its exact intrinsics, and no corner error of the camera's own (no lens
+/// model residual, no compression; see CameraModel::corner_noise).
 inline CameraModel ToModel(const sim::Camera& camera) {
-  return CameraModel::FromIntrinsics(camera.K, camera.dist);
+  CameraModel model = CameraModel::FromIntrinsics(camera.K, camera.dist);
+  model.corner_noise = 0.0;
+  return model;
 }
 
 /// Angle (rad) of the rotation taking one Rodrigues rotation to the other.

@@ -137,6 +137,68 @@ TEST(PoseCovariance, PnpNeesPerRangeBin) {
   }
 }
 
+// The sample recording's lesson (its 7 m stake's track was refused by the tracker's gate): frames
+// sent as JPEG (quality 80, image_transport's compressed default) move a far marker's corners by a few
+// hundredths of a pixel more than the lossless renders' calibration assumes, and the four corners'
+// 2-dof residual does not show it. With the camera's corner noise (CameraModel::corner_noise, its
+// default) the mean NEES stays under the range bins' upper bound; without it the rotation's is above.
+// The default is on the safe side here (measured 0.30 / 0.47): these grey markers on JPEG moved less
+// than the recording's colour frames (0.045 px of corner error beyond the renders' own there).
+TEST(PoseCovariance, JpegFramesNeedTheCameraNoise) {
+  const sim::Camera camera = test::RoverCamera();
+  const CameraModel lossless = test::ToModel(camera);
+  CameraModel jpeg = lossless;
+  jpeg.corner_noise = CameraModel::kDefaultCornerNoise;
+  const double side = 0.2;
+  DetectorConfig config;
+  config.default_side_length = side;
+  const Detector detector(config);
+  cv::RNG rng(11);
+  int used = 0, flipped = 0;
+  double nees_t[2] = {0.0, 0.0}, nees_r[2] = {0.0, 0.0};
+  for (int f = 0; f < 120; ++f) {
+    const double range = rng.uniform(5.0, 10.0);
+    const sim::Marker marker = sim::RandomMarker(rng, camera, 5, side, range, range, rng.uniform(0.0, 40.0));
+    sim::RenderOptions options;
+    options.seed = f + 1;
+    options.noise_sigma = rng.uniform(0.0, 2.0);
+    options.blur_sigma = rng.uniform(0.0, 0.8);
+    std::vector<uchar> bytes;
+    ASSERT_TRUE(cv::imencode(".jpg", sim::RenderScene(camera, {marker}, options), bytes, {cv::IMWRITE_JPEG_QUALITY, 80}));
+    cv::Mat grey;
+    PreprocessFrame(cv::imdecode(bytes, cv::IMREAD_UNCHANGED), grey);
+    auto tags = Detect(grey, detector);
+    if (tags.size() != 1 || tags[0].id != 5) continue;
+    ArucoTag with = tags[0], without = tags[0];
+    ASSERT_TRUE(EstimatePoseFromPNP(jpeg, with));
+    ASSERT_TRUE(EstimatePoseFromPNP(lossless, without));
+    const ArucoTag* both[2] = {&with, &without};
+    if (cv::norm(RotationResidual(with.rvec, marker.rvec)) > 10.0 * kDeg ||
+        cv::norm(RotationResidual(without.rvec, marker.rvec)) > 10.0 * kDeg) {
+      ++flipped;
+      continue;
+    }
+    ++used;
+    for (int i = 0; i < 2; ++i) {
+      nees_t[i] += Nees(both[i]->covariance, 0, both[i]->tvec - marker.tvec);
+      nees_r[i] += Nees(both[i]->covariance, 3, RotationResidual(both[i]->rvec, marker.rvec));
+    }
+  }
+  ASSERT_GT(used, 80);
+  for (int i = 0; i < 2; ++i) {
+    nees_t[i] /= used;
+    nees_r[i] /= used;
+  }
+  std::printf("JPEG q80, 0.2 m at 5-10 m, %d markers (%d flipped): mean NEES translation / rotation %.2f / %.2f "
+              "with corner_noise %.2f px, %.2f / %.2f without\n",
+              used, flipped, nees_t[0], nees_r[0], CameraModel::kDefaultCornerNoise, nees_t[1], nees_r[1]);
+  EXPECT_GE(nees_t[0], 0.15) << "no wider than about 2.5 times the error";
+  EXPECT_LE(nees_t[0], 6.0);
+  EXPECT_GE(nees_r[0], 0.15) << "no wider than about 2.5 times the error";
+  EXPECT_LE(nees_r[0], 6.0);
+  EXPECT_GT(nees_r[1], 6.0) << "the lossless calibration alone is not overconfident on JPEG frames";
+}
+
 ArucoTag NoisyCorners(const sim::Camera& camera, const sim::Marker& marker, double sigma, int seed) {
   ArucoTag tag;
   tag.corners = sim::ProjectCorners(camera, marker);

@@ -82,6 +82,7 @@ TEST(Lifecycle, BadParametersAreNamedAndLeaveTheManagerAlive) {
       {"/bad_windows/detector", "adaptive_thresh_win_size_max"},
       {"/bad_bundles/detector", "~bundles: bundle 'post_b' member id 4: id 4 is also in bundle 'post_a'"},
       {"/bad_bundle_size/detector", "~bundles: bundle 'post_a' member id 4: size must be > 0 m"},
+      {"/bad_corner_noise/detector", "~corner_noise must be >= 0 px"},
   };
   for (const auto& [name, message] : cases) {
     SCOPED_TRACE(name);
