@@ -105,7 +105,14 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
   const int samples = 2 * half + 1;
-  int found = 0;
+  // The profiles first; then one level for the whole edge. A profile's own ends see the marker's
+  // inner bits (a white cell beside the border brightens its dark end under blur) and what lies
+  // past the quiet zone, so each profile's halfway level moved its crossing along the edge with the
+  // bits beside it and tilted the line.
+  std::array<std::array<double, kMaxProfileSamples>, kProfilesPerEdge> profiles;
+  std::array<cv::Point2d, kProfilesPerEdge> bases;
+  std::array<double, kProfilesPerEdge> darks, lights;
+  int read = 0;
   for (int k = 0; k < count; ++k) {
     const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
     const cv::Point2d a = base - outward * (half * step), b = base + outward * (half * step);
@@ -113,18 +120,9 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
         std::max(a.y, b.y) > grey.rows - 2.0) {
       continue;
     }
-    // The profile's ends first: the rest is read only where they differ enough.
     const double dark = internal::SampleInside(grey, a.x, a.y), light = internal::SampleInside(grey, b.x, b.y);
     if (light - dark < 10.0) continue;  // too little contrast to place an edge
-    // Where the border is wide enough for the profile to reach flat dark and light on both sides,
-    // the edge sits where the area under the normalised profile says: exact for a box-filtered
-    // (pixel-averaged) step, where the halfway crossing of the interpolated profile is off by up
-    // to 0.09 px with the sub-pixel phase. On small markers the profile is too short for that and
-    // the crossing is the better estimate. Exactly one crossing: a second means the profile ran
-    // into something else (inner bits, clutter), and then the crossing nearest the expected edge is
-    // used as well.
-    // The samples first, in a loop of independent reads, then the scan along them.
-    std::array<double, kMaxProfileSamples> profile;
+    std::array<double, kMaxProfileSamples>& profile = profiles[read];
     profile[0] = dark;
     profile[samples - 1] = light;
     for (int i = 1; i + 1 < samples; ++i) {
@@ -136,7 +134,32 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
       const double top = r0[0] + fx * (r0[1] - r0[0]), bottom = r1[0] + fx * (r1[1] - r1[0]);
       profile[i] = top + fy * (bottom - top);  // SampleInside's arithmetic, so its values
     }
-    const double level = 0.5 * (dark + light);
+    bases[read] = base;
+    darks[read] = dark;
+    lights[read] = light;
+    ++read;
+  }
+  if (read < 3) return false;
+  // The edge's dark and light: the darker quarter of the dark ends (those beside black inner cells)
+  // and the lighter quarter of the light ends. On 640x480 frames of 50 markers (16-40 px), started
+  // from the true corners, the worst corner's p95 fell from 0.40 to 0.25 px (the fast configuration
+  // from the detector's: 0.61 -> 0.31 px).
+  std::array<double, kProfilesPerEdge> sorted_dark = darks, sorted_light = lights;
+  std::sort(sorted_dark.begin(), sorted_dark.begin() + read);
+  std::sort(sorted_light.begin(), sorted_light.begin() + read);
+  const double edge_dark = sorted_dark[read / 4], edge_light = sorted_light[read - 1 - read / 4];
+  const double level = 0.5 * (edge_dark + edge_light);
+  int found = 0;
+  for (int k = 0; k < read; ++k) {
+    // Where the border is wide enough for the profile to reach flat dark and light on both sides,
+    // the edge sits where the area under the normalised profile says: exact for a box-filtered
+    // (pixel-averaged) step, where the halfway crossing of the interpolated profile is off by up
+    // to 0.09 px with the sub-pixel phase. On small markers the profile is too short for that and
+    // the crossing of the edge's level is the better estimate. Exactly one crossing: a second means
+    // the profile ran into something else (inner bits, clutter), and then the crossing nearest the
+    // expected edge is used as well.
+    const std::array<double, kMaxProfileSamples>& profile = profiles[k];
+    const double dark = darks[k], light = lights[k];
     int crossings = 0;
     double area = 0.0, crossing = std::numeric_limits<double>::infinity();
     double before = dark;  // the sample at i - 1
@@ -156,7 +179,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
     if (!std::isfinite(crossing)) continue;
     const double offset = use_area && crossings == 1 ? half * step - area : crossing;
-    if (std::abs(offset) < half * step) points[found++] = base + outward * offset;
+    if (std::abs(offset) < half * step) points[found++] = bases[k] + outward * offset;
   }
   if (found < 3) return false;
   // Total least squares: the line through the centroid along the points' principal direction.
