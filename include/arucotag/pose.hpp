@@ -48,13 +48,14 @@ struct CameraModel {
   DistortionModel distortion_model = DistortionModel::kRadialTangential;
   /// Image pixels -> the pixels K and distortion were calibrated in (identity without binning/ROI).
   PixelMapping pixels;
-  /// px (image pixels, per coordinate): corner error the camera adds to the detector's own, which
-  /// no frame shows: the calibration's residual lens-model error and what compression moves. The
-  /// pose covariances add it (in quadrature) to the corner noise measured on renders, which have
-  /// exact intrinsics and no loss. The default was measured on the sample recording (JPEG quality
-  /// 80, exact intrinsics): 0.026-0.046 px of corner error beyond a common shift, where the renders'
-  /// calibration assumes 0.006-0.009 px. Set it to your calibration's reprojection RMS when that is
-  /// larger; 0 for a lossless render through the very intrinsics.
+  /// px (image pixels, per coordinate): corner error a real camera adds to what the pose
+  /// covariances were calibrated for, and which four corners' residual cannot show: the
+  /// calibration's lens-model residual, compression, motion blur. Added in quadrature to the corner
+  /// noise measured on still, lossless renders through their exact intrinsics (0.006-0.009 px for
+  /// 20-40 px markers). The default was measured on the sample recording (moving camera, motion
+  /// blur up to 2.6 px, sensor noise, JPEG quality 80, exact intrinsics): 0.03-0.07 px per marker.
+  /// Set it to your calibration's reprojection RMS when that is larger; 0 for a still, lossless
+  /// render through the very intrinsics.
   double corner_noise = kDefaultCornerNoise;
   static constexpr double kDefaultCornerNoise = 0.05;
 

@@ -144,9 +144,9 @@ constexpr double kSameMinimumRad = 1e-3;
 // markers, so 13-20 px at 10-15 m) 3.9/3.0, 1.7/2.6, 1.8/5.6, 1.5/3.1. The small side was 16 px
 // until the second chance read more 12-16 px markers (2026-11): those sat at 1.49 in the test's far
 // bin, under its 1.5 bound, and bench_pose's far bin at 4.1/3.6 (all with CameraModel::corner_noise 0:
-// renders through their exact intrinsics). Real lenses, calibrations and compression add error the
-// renders do not have, and the 2-dof residual cannot show it: CameraModel::corner_noise carries it
-// (on the JPEG sample recording the 17-22 px stake's PnP rotations had NEES 100-500 without it).
+// renders through their exact intrinsics). Real lenses, calibrations, compression and motion blur add
+// error these renders do not have, and the 2-dof residual cannot show it: CameraModel::corner_noise
+// carries it (on the sample recording the 17-22 px stake's PnP rotations had NEES 100-500 without it).
 constexpr double kCornerSigmaPrior = 0.009;
 constexpr double kCornerSigmaPriorSide = 40.0;
 constexpr double kCornerSigmaPriorGrowth = 0.75;

@@ -142,8 +142,8 @@ TEST(PoseCovariance, PnpNeesPerRangeBin) {
 // hundredths of a pixel more than the lossless renders' calibration assumes, and the four corners'
 // 2-dof residual does not show it. With the camera's corner noise (CameraModel::corner_noise, its
 // default) the mean NEES stays under the range bins' upper bound; without it the rotation's is above.
-// The default is on the safe side here (measured 0.30 / 0.47): these grey markers on JPEG moved less
-// than the recording's colour frames (0.045 px of corner error beyond the renders' own there).
+// The default is on the safe side here (measured 0.30 / 0.47): JPEG alone moves these still markers
+// less than the recording's moving camera does with motion blur, noise and JPEG (0.03-0.07 px).
 TEST(PoseCovariance, JpegFramesNeedTheCameraNoise) {
   const sim::Camera camera = test::RoverCamera();
   const CameraModel lossless = test::ToModel(camera);
