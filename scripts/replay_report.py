@@ -234,6 +234,40 @@ def angle_between(q1, q2):
     return math.degrees(2.0 * math.acos(min(1.0, dot)))
 
 
+def quaternion_matrix(q):
+    """3x3 rotation matrix (rows) of a unit geometry_msgs/Quaternion."""
+    x, y, z, w = q.x, q.y, q.z, q.w
+    return [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+
+
+def rotation_residual(measured, true):
+    """rad, the rotation vector taking the true orientation to the measured one about the frame's fixed
+    axes (measured = exp(e) true): the convention of ArucoTag.covariance's rotation block."""
+    a, b = quaternion_matrix(measured), quaternion_matrix(true)
+    m = [[sum(a[i][k] * b[j][k] for k in range(3)) for j in range(3)] for i in range(3)]  # a b^T
+    angle = math.acos(max(-1.0, min(1.0, (m[0][0] + m[1][1] + m[2][2] - 1.0) / 2.0)))
+    axis = (m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1])
+    scale = angle / (2.0 * math.sin(angle)) if angle > 1e-9 else 0.5
+    return [scale * v for v in axis]
+
+
+def nees(covariance, offset, error):
+    """error^T C^-1 error over the 3x3 block of a row-major 6x6 covariance starting at `offset` (0:
+    position, 3: rotation); None when the block is not finite or not invertible."""
+    c = [[covariance[6 * (offset + i) + offset + j] for j in range(3)] for i in range(3)]
+    if not all(math.isfinite(v) for row in c for v in row):
+        return None
+    cof = [[c[(i + 1) % 3][(j + 1) % 3] * c[(i + 2) % 3][(j + 2) % 3] -
+            c[(i + 1) % 3][(j + 2) % 3] * c[(i + 2) % 3][(j + 1) % 3] for j in range(3)] for i in range(3)]
+    det = sum(c[0][j] * cof[0][j] for j in range(3))
+    if not det > 0.0:
+        return None
+    # C^-1 = cof^T / det (C symmetric)
+    return sum(error[i] * cof[j][i] * error[j] for i in range(3) for j in range(3)) / det
+
+
 def corner_distance(a, b):
     """px, mean distance between corresponding corners of two tags."""
     return sum(math.hypot(p.x - q.x, p.y - q.y) for p, q in zip(a.corners, b.corners)) / 4.0
@@ -261,11 +295,18 @@ class MarkerScore:
         self.seen = 0         # of those, detected
         self.small_seen = 0   # detected while too small or partly outside (not required)
         self.errors = []      # (distance error m, relative, yaw error deg, rotation error deg, true distance m)
+        self.nees = []        # (position NEES, rotation NEES or None) of poses that are not flips
         self.sources = {}
         self.failures = []
 
     def flips(self):
         return sum(1 for e in self.errors if e[3] > FLIP_DEG)
+
+    def mean_nees(self):
+        """Mean NEES of position and of rotation (None where nothing counted); 3 is calibrated."""
+        t = [n[0] for n in self.nees if n[0] is not None]
+        r = [n[1] for n in self.nees if n[1] is not None]
+        return (statistics.mean(t) if t else None), (statistics.mean(r) if r else None)
 
 
 def score(replay, thresholds):
@@ -301,8 +342,13 @@ def score(replay, thresholds):
             if det.pose_source != 0:
                 derr = abs(det.distance - t.distance)
                 yaw = math.degrees(abs(math.atan2(math.sin(det.yaw - t.yaw), math.cos(det.yaw - t.yaw))))
-                m.errors.append((derr, derr / t.distance, yaw, angle_between(det.pose.orientation, t.pose.orientation),
-                                 t.distance))
+                rotation = angle_between(det.pose.orientation, t.pose.orientation)
+                m.errors.append((derr, derr / t.distance, yaw, rotation, t.distance))
+                if rotation <= FLIP_DEG:  # a flip is `ambiguity`'s to report, not the covariance's
+                    p, q = det.pose.position, t.pose.position
+                    m.nees.append((nees(det.covariance, 0, (p.x - q.x, p.y - q.y, p.z - q.z)),
+                                   nees(det.covariance, 3, rotation_residual(det.pose.orientation, t.pose.orientation))
+                                   if det.orientation_measured else None))
     for m in markers.values():
         if m.visible < thresholds.min_frames:
             continue
@@ -332,9 +378,9 @@ def score(replay, thresholds):
 
 def format_table(replay, markers, false_positives, missing, thresholds):
     lines = []
-    header = ("%-9s %3s %13s %7s %6s  %-17s %-26s %-13s %-21s %s"
+    header = ("%-9s %3s %13s %7s %6s  %-17s %-26s %-13s %-21s %-11s %s"
               % ("marker", "id", "seen/visible", "recall", "small", "dist err median", "dist err worst (range)",
-                 "yaw err deg", "rot err <5m/>5m", "pose source"))
+                 "yaw err deg", "rot err <5m/>5m", "NEES t / r", "pose source"))
     lines.append(header)
     lines.append("-" * len(header))
     for name in sorted(markers):
@@ -355,19 +401,22 @@ def format_table(replay, markers, false_positives, missing, thresholds):
                                           "%.1f" % statistics.median(far) if far else "-", m.flips())
         else:
             dist = dist_worst = yaw = rot = "-"
+        nees_t, nees_r = m.mean_nees()
+        consistency = "%s / %s" % tuple("%.1f" % v if v is not None else "-" for v in (nees_t, nees_r))
         total = sum(m.sources.values())
         sources = ", ".join("%s %d%%" % (k, round(100.0 * v / total)) for k, v in sorted(m.sources.items())) or "-"
         verdict = "" if m.visible >= thresholds.min_frames else "  (too few visible frames to judge)"
         if m.failures:
             verdict = "  FAIL: " + "; ".join(m.failures)
-        lines.append("%-9s %3d %13s %7s %6d  %-17s %-26s %-13s %-21s %s%s"
+        lines.append("%-9s %3d %13s %7s %6d  %-17s %-26s %-13s %-21s %-11s %s%s"
                      % (name, m.id, "%d/%d" % (m.seen, m.visible), recall, m.small_seen, dist, dist_worst, yaw, rot,
-                        sources, verdict))
+                        consistency, sources, verdict))
     lines.append("")
     lines.append("visible = whole in the image, >= %.0f px (sqrt of its area), <= %.0f deg off head-on; small = "
                  "detections while not visible (too small, cut off or grazing); yaw err = median / worst; rot err = median "
-                 "rotation error (deg) up to 5 m / 5-15 m, flips = rotation error > %.0f deg; errors over "
-                 "visible frames" % (thresholds.min_px, thresholds.max_obliquity_deg, FLIP_DEG))
+                 "rotation error (deg) up to 5 m / 5-15 m, flips = rotation error > %.0f deg; NEES t / r = mean "
+                 "normalised estimation error squared of position / rotation against the pose's own covariance (3 "
+                 "is calibrated; flips left out); errors over visible frames" % (thresholds.min_px, thresholds.max_obliquity_deg, FLIP_DEG))
     lines.append("frames: %d images in the bag, %d truth, %d tag arrays received, %d truth frames without tags; "
                  "%d detections matching no marker (%s); replay took %.0f s"
                  % (replay.images, len(replay.truth), len(replay.tags), len(missing), len(false_positives),
