@@ -34,7 +34,7 @@ struct NodeletParameters {
   std::string frame_prefix;
   bool rectified = false;          ///< camera model from P (rectified image) instead of K + D
   /// px, CameraModel::corner_noise of the camera models made from camera_info: the corner error the
-  /// camera adds (calibration residual, compression) to what the pose covariances assume
+  /// camera adds (calibration residual, compression, motion blur) to what the pose covariances assume
   double corner_noise = CameraModel::kDefaultCornerNoise;
   double camera_info_max_age = 0.0;  ///< s between image and camera_info stamps before a warning; 0: any age
   double camera_info_wait = 1.0;     ///< s images wait for the first camera_info (only before one has come)
