@@ -416,7 +416,8 @@ def format_table(replay, markers, false_positives, missing, thresholds):
                  "detections while not visible (too small, cut off or grazing); yaw err = median / worst; rot err = median "
                  "rotation error (deg) up to 5 m / 5-15 m, flips = rotation error > %.0f deg; NEES t / r = mean "
                  "normalised estimation error squared of position / rotation against the pose's own covariance (3 "
-                 "is calibrated; flips left out); errors over visible frames" % (thresholds.min_px, thresholds.max_obliquity_deg, FLIP_DEG))
+                 "is calibrated; flips left out); errors over visible frames"
+                 % (thresholds.min_px, thresholds.max_obliquity_deg, FLIP_DEG))
     lines.append("frames: %d images in the bag, %d truth, %d tag arrays received, %d truth frames without tags; "
                  "%d detections matching no marker (%s); replay took %.0f s"
                  % (replay.images, len(replay.truth), len(replay.tags), len(missing), len(false_positives),

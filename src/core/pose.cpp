@@ -88,7 +88,8 @@ void CameraModel::Validate() const {
     throw Error("camera pixel mapping invalid: scale must be positive and offset finite");
   }
   if (!(std::isfinite(corner_noise) && corner_noise >= 0.0)) {
-    throw Error("camera corner_noise invalid: must be a finite number of px >= 0 (got " + std::to_string(corner_noise) + ")");
+    throw Error("camera corner_noise invalid: must be a finite number of px >= 0 (got " + std::to_string(corner_noise) +
+                ")");
   }
 }
 

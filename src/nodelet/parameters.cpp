@@ -92,8 +92,8 @@ void ForEachTrackField(Visit&& visit) {
 const char* const kOtherNames[] = {
     "dictionary", "tag_size", "tag_sizes", "allowed_ids", "ignored_ids", "corner_refinement", "marker_border_bits",
     "image_transport", "use_point_cloud", "queue_size", "pose_source", "publish_tf", "output_frame",
-    "frame_prefix", "rectified", "corner_noise", "camera_info_max_age", "camera_info_wait", "cloud_max_dt", "cloud_cache_size",
-    "depth_noise", "tf_from_validated_tracks", "bundles",
+    "frame_prefix", "rectified", "corner_noise", "camera_info_max_age", "camera_info_wait", "cloud_max_dt",
+    "cloud_cache_size", "depth_noise", "tf_from_validated_tracks", "bundles",
     "diagnostic_period",  // diagnostic_updater's own
 };
 const char* const kFuserNames[] = {"inputs", "output_frame", "queue_size", "publish_tf", "frame_prefix"};
@@ -367,7 +367,7 @@ NodeletParameters ReadParameters(const ros::NodeHandle& pnh) {
   Get(pnh, "rectified", p.rectified);
   Get(pnh, "corner_noise", p.corner_noise);
   Require(std::isfinite(p.corner_noise) && p.corner_noise >= 0.0, "corner_noise",
-          "must be >= 0 px (the corner error the camera adds: calibration residual, compression)");
+          "must be >= 0 px (the corner error the camera adds: calibration residual, compression, motion blur)");
   const auto seconds = [&pnh](const char* name, double& value) {
     Get(pnh, name, value);
     Require(std::isfinite(value) && value >= 0.0, name, "must be >= 0 s, got " + std::to_string(value));

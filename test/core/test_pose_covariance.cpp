@@ -164,7 +164,8 @@ TEST(PoseCovariance, JpegFramesNeedTheCameraNoise) {
     options.noise_sigma = rng.uniform(0.0, 2.0);
     options.blur_sigma = rng.uniform(0.0, 0.8);
     std::vector<uchar> bytes;
-    ASSERT_TRUE(cv::imencode(".jpg", sim::RenderScene(camera, {marker}, options), bytes, {cv::IMWRITE_JPEG_QUALITY, 80}));
+    ASSERT_TRUE(
+        cv::imencode(".jpg", sim::RenderScene(camera, {marker}, options), bytes, {cv::IMWRITE_JPEG_QUALITY, 80}));
     cv::Mat grey;
     PreprocessFrame(cv::imdecode(bytes, cv::IMREAD_UNCHANGED), grey);
     auto tags = Detect(grey, detector);
