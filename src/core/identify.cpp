@@ -219,7 +219,7 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
 namespace {
 
 // px: markers whose mean side is under this are not tried without cv::aruco's corners (see Decode).
-constexpr float kSettleMinSide = 32.0f;
+constexpr float kSettleMinSide = 20.0f;
 
 // Whether point `p` lies strictly inside the quad (cv::pointPolygonTest > 0), its bounding box
 // tested first.
