@@ -397,9 +397,11 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       // A full-resolution contour's corners are within the edge fit's reach: where that fit settles
       // (one more pass would move no corner by over kEdgeFitSettledPx) it has reached the fixed point
       // it would reach from cv::aruco's corners too, and tracing cv::aruco's windows around the marker
-      // (CornersAsOpenCv) is not needed. Few markers under kSettleMinSide settle (bench_detect, the
-      // 640x480 50-marker and 1280x720 20-marker sets and the 640x480 photos: 94 of 283 under 30 px,
-      // 163 of 169 from 30 px), so those go straight to cv::aruco's corners.
+      // (CornersAsOpenCv) is not needed. Fewer markers settle the smaller they are, and those that do
+      // not cost a wasted pass, so markers under kSettleMinSide go straight to cv::aruco's corners.
+      // 20 px took the fewest instructions of 16-32 px (callgrind of Detect, 6 frames of 640x480 with
+      // 5 / 20 / 50 markers and 720p with 50: 66.8 / 155.6 / 242.2 / 275.3 M, against 68.1 / 160.0 /
+      // 258.2 / 285.4 M at 32, which suited the edge fit before its crossing level was common).
       // Otherwise: cornerSubPix lands within a few hundredths of a pixel from any start a pixel or two
       // away; the edge fit keeps its start where it cannot measure an edge, so it gets cv::aruco's.
       if (config.corner_refinement == CornerRefinement::kEdge && !second && q.level == 0 &&
