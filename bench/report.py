@@ -123,6 +123,11 @@ def targets(results):
             if cpu > target:
                 misses.append(f"{s['name']}: {m['label']} at {cpu:.2f} of OpenCV's CPU time ({wall:.2f} wall; "
                               f"target <= {target})")
+            # Video mode's median frame is a tracked one; what it costs over a drive is the mean, its
+            # whole searches included (wall time: no CPU time is kept per call).
+            if key == "ours_video" and m["mean_ms"] / ref["mean_ms"] > target:
+                misses.append(f"{s['name']}: {m['label']}, mean frame at {m['mean_ms'] / ref['mean_ms']:.3f} of "
+                              f"OpenCV's mean (wall; target <= {target})")
         if ours is not None:
             best = max(PEERS, key=lambda k: recall(s["methods"][k]) if k in s["methods"] else -1)
             if recall(ours) is not None and recall(ours) < recall(s["methods"][best]):
@@ -232,10 +237,13 @@ def notes(results):
     for s in results["sets"]:
         if s["sequence"] and "ours_video" in s["methods"]:
             frames = max(1, s['tracked_frames'] + s['full_searches'])
+            video, ref = s["methods"]["ours_video"], s["methods"]["opencv"]
             lines.append(f"- {s['name']}, video mode: {s['tracked_frames']} frames searched by tracking "
                          f"({s.get('read_at_prediction', 0)} markers read where predicted, without a search), "
                          f"{s['full_searches']} searched whole (the full scan's budget: one frame in "
-                         f"full_search_interval, or a marker lost); "
+                         f"full_search_interval, or a marker lost); the table's time is the median frame's, a "
+                         f"tracked one: the mean over all frames is {video['mean_ms']:.2f} ms, "
+                         f"{video['mean_ms'] / ref['mean_ms']:.3f} of OpenCV's mean {ref['mean_ms']:.2f} ms (wall); "
                          f"{s.get('searched_pixels', 0) / frames / 1e3:.0f} k pixels searched a frame; "
                          f"latency to first detection of a marker after it "
                          f"comes into view: mean {s['mean_new_marker_delay']:.2f}, worst {s['worst_new_marker_delay']} "
