@@ -22,6 +22,12 @@ constexpr double kPlateauBorder = 5.0;
 constexpr double kFitLength = 20.0;
 // Profiles across each fitted stretch: beyond this the line barely improves and time grows.
 constexpr int kProfilesPerEdge = 16;
+// Profiles in a pass that two more passes follow (small markers' first of three): it only brings the
+// corners near, where the last two passes place them. Measured (bench_detect, every set): the same
+// recall, default corner medians and p95s within 0.001 px, 4.6 % fewer instructions in Detect on
+// 640x480 frames of 50 markers (3.4 % on 720p); half the profiles in every pass but the last saved
+// 8.8 %, but 640x480/50's median went 0.040 -> 0.041 px and p95 0.171 -> 0.174.
+constexpr int kNearingProfiles = 8;
 // Samples across a profile, at most: 3 px each side at 0.5 px steps, or under 2 px at 0.25 px.
 constexpr int kMaxProfileSamples = 17;
 // How far (px) a pass may move a corner, and all passes together, before the move is distrusted (the
@@ -78,15 +84,16 @@ Stretch EdgeStretch(double length, double near_angle, double far_angle, double b
 
 // Sub-pixel points of the edge from `from` towards `to`, on the stretch from `start` to `stop` px
 // along it. `outward` is the unit normal pointing from the marker's black border to the white
-// surround; `border` the black border's thickness across the edge (px). Fits a line through them;
-// false when too few points were measurable.
+// surround; `border` the black border's thickness across the edge (px). At most `profile_count`
+// profiles (kProfilesPerEdge at most). Fits a line through them; false when too few points were
+// measurable.
 bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to, const cv::Point2d& outward,
-             double border, double start, double stop, Line& line) {
+             double border, double start, double stop, int profile_count, Line& line) {
   const double reach = Reach(border);
   const bool use_area = border >= kPlateauBorder;
   const cv::Point2d u = (to - from) / cv::norm(to - from);
   if (stop - start < 2.0) return false;
-  const int count = std::min(kProfilesPerEdge, static_cast<int>(stop - start) + 1);
+  const int count = std::min({profile_count, kProfilesPerEdge, static_cast<int>(stop - start) + 1});
   // Finer sampling where the profile is only a few pixels long.
   const double step = reach < 2.0 ? 0.25 : 0.5;
   const int half = static_cast<int>(std::ceil(reach / step));
@@ -211,8 +218,10 @@ bool Intersect(const Line& a, const Line& b, cv::Point2d& out) {
 
 namespace {
 
-// One pass: every corner whose two edges could be measured moves to their intersection.
-int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells) {
+// One pass: every corner whose two edges could be measured moves to their intersection, each edge
+// measured on at most `profile_count` profiles.
+int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
+               int profile_count = kProfilesPerEdge) {
   // Orientation of the quad, so outward normals point away from the marker whatever the winding.
   double area = 0.0;
   for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
@@ -246,14 +255,14 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     const double border = std::min(border_a, border_b);
     const Stretch both = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border);
     if (both.whole) {
-      near_ok[e] = far_ok[e] = FitEdge(grey, a, b, outward, border, both.start, both.stop, near[e]);
+      near_ok[e] = far_ok[e] = FitEdge(grey, a, b, outward, border, both.start, both.stop, profile_count, near[e]);
       far[e] = near[e];
       continue;
     }
     const Stretch at_a = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border_a);
     const Stretch at_b = EdgeStretch(length, angle[(e + 1) % 4], angle[e], border_b);
-    near_ok[e] = FitEdge(grey, a, b, outward, border_a, at_a.start, at_a.stop, near[e]);
-    far_ok[e] = FitEdge(grey, b, a, outward, border_b, at_b.start, at_b.stop, far[e]);
+    near_ok[e] = FitEdge(grey, a, b, outward, border_a, at_a.start, at_a.stop, profile_count, near[e]);
+    far_ok[e] = FitEdge(grey, b, a, outward, border_b, at_b.start, at_b.stop, profile_count, far[e]);
   }
   std::array<cv::Point2f, 4> refined = corners;
   const double max_move = MaxMove(internal::MeanSide(corners), kMaxMovePerPass);
@@ -291,7 +300,7 @@ int RefinePasses(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int c
   if (passes <= 0) passes = 4.0 * internal::MeanSide(corners) < kSmallPerimeter ? 3 : 2;  // small markers start further off
   for (int pass = 0; pass < passes; ++pass) {
     before = corners;
-    moved = RefineOnce(grey, corners, cells);
+    moved = RefineOnce(grey, corners, cells, pass + 2 < passes ? kNearingProfiles : kProfilesPerEdge);
   }
   last_move = 0.0;
   const double max_drift = MaxMove(internal::MeanSide(start), kMaxDrift);
