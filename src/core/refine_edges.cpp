@@ -82,6 +82,72 @@ Stretch EdgeStretch(double length, double near_angle, double far_angle, double b
   return {start, std::min(end, start + kFitLength), start + kFitLength >= end};
 }
 
+// The offset (px, outwards from the profile's middle) of the rising crossing of `level` nearest the
+// middle, on a profile of 2 half + 1 samples `step` px apart whose ends are `dark` and `light` and
+// whose sample i is sample(i); infinity without one. The samples are read from the middle outwards
+// and only as far as the nearest crossing: a profile that starts a pixel from the edge reads a few of
+// its samples, not all. The same crossing, tie included, as a scan of the whole profile that keeps the
+// first of the nearest.
+template <typename Sample>
+double NearestCrossing(double dark, double light, double level, int half, double step, const Sample& sample) {
+  const int samples = 2 * half + 1;
+  const auto value = [&](int i) { return i == 0 ? dark : i == samples - 1 ? light : sample(i); };
+  // Interval i runs from sample i - 1 to sample i; a crossing in it lies (i - 1 - half .. i - half)
+  // steps from the middle.
+  const auto crossing = [&](int i, double before, double after) {
+    return before < level && after >= level ? (i - 1 - half + (level - before) / (after - before)) * step
+                                            : std::numeric_limits<double>::infinity();
+  };
+  double right_before = value(half), left_after = right_before;
+  for (int d = 0; d < half; ++d) {
+    // The intervals d to d + 1 steps from the middle: on the right, then on the left.
+    const int right = half + 1 + d, left = half - d;
+    const double right_after = value(right), left_before = value(left - 1);
+    const double r = crossing(right, right_before, right_after), l = crossing(left, left_before, left_after);
+    right_before = right_after;
+    left_after = left_before;
+    if (!std::isfinite(r) && !std::isfinite(l)) continue;
+    if (std::isfinite(l) && !(std::abs(r) < std::abs(l))) return l;  // a tie goes to the left, as a scan's
+    // A right crossing exactly d + 1 steps out ties with a left one ending exactly there.
+    if (std::abs(r) == (d + 1) * step && left > 1) {
+      const double next = crossing(left - 1, value(left - 2), left_before);
+      if (std::abs(next) == std::abs(r)) return next;
+    }
+    return r;
+  }
+  return std::numeric_limits<double>::infinity();
+}
+
+// The offset (px) of the edge on a whole profile (see NearestCrossing for the arguments): by the area under it normalised to [0, 1] where exactly one rising crossing
+// of `level` lies on it, else that nearest crossing; infinity without a crossing.
+template <typename Sample>
+double AreaOffset(double dark, double light, double level, int half, double step, const Sample& sample) {
+  const int samples = 2 * half + 1;
+  std::array<double, kMaxProfileSamples> profile;
+  profile[0] = dark;
+  profile[samples - 1] = light;
+  for (int i = 1; i + 1 < samples; ++i) profile[i] = sample(i);
+  int crossings = 0;
+  double area = 0.0, crossing = std::numeric_limits<double>::infinity();
+  double before = dark;  // the sample at i - 1
+  for (int i = 1; i < samples; ++i) {
+    const double value = profile[i];
+    if (before < level && value >= level) {
+      ++crossings;
+      const double at = (i - 1 - half + (level - before) / (value - before)) * step;
+      if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
+    } else if (before >= level && value < level) {
+      ++crossings;
+    }
+    area += before + value;
+    before = value;
+  }
+  if (!std::isfinite(crossing)) return crossing;
+  // Trapezoid rule over the profile normalised to [0, 1].
+  area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
+  return crossings == 1 ? half * step - area : crossing;
+}
+
 // Sub-pixel points of the edge from `from` towards `to`, on the stretch from `start` to `stop` px
 // along it. `outward` is the unit normal pointing from the marker's black border to the white
 // surround; `border` the black border's thickness across the edge (px). At most `profile_count`
@@ -111,12 +177,21 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // A fixed-size buffer (this runs 8 times a pass on every marker; heap allocations were a measurable
   // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
-  const int samples = 2 * half + 1;
-  // The profiles first; then one level for the whole edge. A profile's own ends see the marker's
-  // inner bits (a white cell beside the border brightens its dark end under blur) and what lies
-  // past the quiet zone, so each profile's halfway level moved its crossing along the edge with the
-  // bits beside it and tilted the line.
-  std::array<std::array<double, kMaxProfileSamples>, kProfilesPerEdge> profiles;
+  // Sample i of the profile at `base` (0 and samples - 1 are its ends, read below): SampleInside's
+  // arithmetic, so its values.
+  const auto sample = [&](const cv::Point2d& base, int i) {
+    const double x = base.x + across_x[i], y = base.y + across_y[i];
+    const int ix = static_cast<int>(x), iy = static_cast<int>(y);  // the floor: inside the image
+    const uchar* r0 = pixels + iy * row_step + ix;
+    const uchar* r1 = r0 + row_step;
+    const double fx = x - ix, fy = y - iy;
+    const double top = r0[0] + fx * (r0[1] - r0[0]), bottom = r1[0] + fx * (r1[1] - r1[0]);
+    return top + fy * (bottom - top);
+  };
+  // The profiles' ends first; then one level for the whole edge. A profile's own ends see the
+  // marker's inner bits (a white cell beside the border brightens its dark end under blur) and what
+  // lies past the quiet zone, so each profile's halfway level moved its crossing along the edge with
+  // the bits beside it and tilted the line.
   std::array<cv::Point2d, kProfilesPerEdge> bases;
   std::array<double, kProfilesPerEdge> darks, lights;
   int read = 0;
@@ -129,18 +204,6 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     }
     const double dark = internal::SampleInside(grey, a.x, a.y), light = internal::SampleInside(grey, b.x, b.y);
     if (light - dark < 10.0) continue;  // too little contrast to place an edge
-    std::array<double, kMaxProfileSamples>& profile = profiles[read];
-    profile[0] = dark;
-    profile[samples - 1] = light;
-    for (int i = 1; i + 1 < samples; ++i) {
-      const double x = base.x + across_x[i], y = base.y + across_y[i];
-      const int ix = static_cast<int>(x), iy = static_cast<int>(y);  // the floor: inside the image
-      const uchar* r0 = pixels + iy * row_step + ix;
-      const uchar* r1 = r0 + row_step;
-      const double fx = x - ix, fy = y - iy;
-      const double top = r0[0] + fx * (r0[1] - r0[0]), bottom = r1[0] + fx * (r1[1] - r1[0]);
-      profile[i] = top + fy * (bottom - top);  // SampleInside's arithmetic, so its values
-    }
     bases[read] = base;
     darks[read] = dark;
     lights[read] = light;
@@ -165,27 +228,9 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     // the crossing of the edge's level is the better estimate. Exactly one crossing: a second means
     // the profile ran into something else (inner bits, clutter), and then the crossing nearest the
     // expected edge is used as well.
-    const std::array<double, kMaxProfileSamples>& profile = profiles[k];
-    const double dark = darks[k], light = lights[k];
-    int crossings = 0;
-    double area = 0.0, crossing = std::numeric_limits<double>::infinity();
-    double before = dark;  // the sample at i - 1
-    for (int i = 1; i < samples; ++i) {
-      const double value = profile[i];
-      if (before < level && value >= level) {
-        ++crossings;
-        const double at = (i - 1 - half + (level - before) / (value - before)) * step;
-        if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
-      } else if (before >= level && value < level) {
-        ++crossings;
-      }
-      area += before + value;
-      before = value;
-    }
-    // Trapezoid rule over the profile normalised to [0, 1].
-    area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
-    if (!std::isfinite(crossing)) continue;
-    const double offset = use_area && crossings == 1 ? half * step - area : crossing;
+    const auto at = [&](int i) { return sample(bases[k], i); };
+    const double offset = use_area ? AreaOffset(darks[k], lights[k], level, half, step, at)
+                                   : NearestCrossing(darks[k], lights[k], level, half, step, at);
     if (std::abs(offset) < half * step) points[found++] = bases[k] + outward * offset;
   }
   if (found < 3) return false;
