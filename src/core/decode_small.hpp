@@ -50,6 +50,9 @@ void CoverageSampleCells(const cv::Point2d& p00, const cv::Point2d& dx, const cv
 /// tenth of the dense factorisation. `normal` is overwritten, `rhs` becomes x; false when the
 /// matrix is not positive definite.
 bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs);
+/// The same on a row-major m x m `normal` whose row i is read from first[i] (<= i) to the diagonal
+/// only (the rest of the lower triangle zero, the upper never read); `b` becomes x.
+bool SolveEnvelope(double* normal, int m, const int* first, double* b);
 
 /// The pattern fit (RefineCornersOnPattern) that checked a decoded marker: where it put the corners
 /// (cv::aruco order) and the blur variance it found. Detect takes it as the marker's refinement
