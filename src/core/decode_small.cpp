@@ -501,9 +501,12 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   if (turn < 0.0) std::swap(quad[1], quad[3]);
   const cv::Matx33d h = SquareToQuad(quad);
 
-  // The quad as the black square; as a quiet-zone outline; as a black square whose contour is a
-  // pixel off, pushed out into its quiet zone and located again from the grey levels.
-  std::vector<cv::Matx33d> hypotheses;
+  // The quad as the black square; grown by fractions of a pixel; as a black square whose contour is
+  // a pixel off on some sides, each side moved onto its grey-level edge; as a quiet-zone outline; as
+  // one pushed out into its quiet zone and located again from the grey levels. Each framing is only
+  // made when those before it failed to read: the first that reads is the same, and on bench's dim
+  // distant set three in four misframed markers read before the edge fit or the quiet-zone profiles
+  // are needed.
   int id = -1, rotation = 0;
   double quiet_offset = 0.0;
   const Reading plain = ReadCells(grey, h, dictionary, border_bits, detect_inverted, id, rotation, &quiet_offset);
@@ -512,6 +515,10 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   // unreadable or as a clear code of no marker, and costs nothing more), with a marker's
   // surroundings (kMaxMisframedQuiet).
   if (plain != Reading::kMisframed || std::fabs(quiet_offset) > kMaxMisframedQuiet) return false;
+  const auto read = [&](const cv::Matx33d& square) {
+    return ReadCells(grey, square, dictionary, border_bits, detect_inverted, id, rotation) == Reading::kRead &&
+           Accept(grey, dictionary, border_bits, square, id, rotation, marker);
+  };
   // The quad with each side moved out by `px`.
   const auto grown = [&h, side = MeanSide(quad)](double px) {
     const double g = px / side;
@@ -520,25 +527,20 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   const bool fine = MeanSide(quad) < kFineGrowMaxPxPerCell * cells;
   const double* grow = fine ? kFineGrowPx : kGrowPx;
   const size_t grows = fine ? std::size(kFineGrowPx) : std::size(kGrowPx);
-  for (size_t k = 0; k < grows; ++k) hypotheses.push_back(grown(grow[k]));
+  for (size_t k = 0; k < grows; ++k) {
+    if (read(grown(grow[k]))) return true;
+  }
   // Each side moved onto its own grey-level edge: a contour can be off by more on one side than a
   // uniform growth corrects (blur, tilt, a pixel of noise on the threshold).
   std::array<cv::Point2f, 4> edges = quad;
-  if (RefineCornersOnEdges(grey, edges, cells) > 0) hypotheses.push_back(SquareToQuad(edges));
+  if (RefineCornersOnEdges(grey, edges, cells) > 0 && read(SquareToQuad(edges))) return true;
   cv::Matx33d inner;
   const double e = kExpandCells / cells;
   const cv::Matx33d expanded = SubSquare(h, -e, -e, 1.0 + e, 1.0 + e);
   for (const bool inverted : {false, true}) {
     if (inverted && !detect_inverted) break;
-    if (InnerSquare(grey, h, cells, inverted, inner)) hypotheses.push_back(inner);
-    if (InnerSquare(grey, expanded, cells, inverted, inner)) hypotheses.push_back(inner);
-  }
-  const auto read = [&](const cv::Matx33d& square) {
-    return ReadCells(grey, square, dictionary, border_bits, detect_inverted, id, rotation) == Reading::kRead &&
-           Accept(grey, dictionary, border_bits, square, id, rotation, marker);
-  };
-  for (const cv::Matx33d& square : hypotheses) {
-    if (read(square)) return true;
+    if (InnerSquare(grey, h, cells, inverted, inner) && read(inner)) return true;
+    if (InnerSquare(grey, expanded, cells, inverted, inner) && read(inner)) return true;
   }
   // Last, under kFineGrowMaxPxPerCell: one side of the contour can lie most of a cell further in
   // than the others, and the edge fit from there takes the inner edge of the border cells for the
