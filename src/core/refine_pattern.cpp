@@ -194,6 +194,20 @@ Kernel BlurKernel(double variance) {
   return kernel;
 }
 
+// BlurKernel(variance), the start's variances (kStartBlurVariances, tried by every cold fit) computed
+// once.
+Kernel KernelFor(double variance) {
+  static const std::array<Kernel, std::size(kStartBlurVariances)> start = [] {
+    std::array<Kernel, std::size(kStartBlurVariances)> kernels;
+    for (size_t v = 0; v < kernels.size(); ++v) kernels[v] = BlurKernel(kStartBlurVariances[v]);
+    return kernels;
+  }();
+  for (size_t v = 0; v < start.size(); ++v) {
+    if (variance == kStartBlurVariances[v]) return start[v];
+  }
+  return BlurKernel(variance);
+}
+
 // out[x] = sum over k in [-R, R] of tap[k] * in[x + k * stride], x in [0, count): each output is
 // summed in a register, the taps in order (the same sum as adding tap by tap into `out`, in a
 // quarter of the loads and stores). Inlined into Blurred, so it is built for each of its clones.
@@ -302,10 +316,10 @@ class PatternFit {
   // a cell boundary crosses, are scattered along rows from those pixels alone and blurred along
   // columns only at the samples.
   // The start's brightness-and-contrast fit and the first normal equations blur the same coverage with
-  // the same kernel: the second time copies the first's result.
+  // the same kernel: the second time copies the first's result (see Adopt).
   ARUCOTAG_VECTOR_CLONES void Blurred(double variance, std::vector<float>& cover, std::vector<float>* jac) {
     if (!(variance == kernel_variance_)) {
-      kernel_ = BlurKernel(variance);
+      kernel_ = KernelFor(variance);
       kernel_variance_ = variance;
       blurred_ = false;
     }
@@ -371,6 +385,15 @@ class PatternFit {
       }
       StoreSlopes(&(*jac)[i * kSlopes], sum);
     }
+  }
+
+  // Takes `cover`, what Blurred(variance, cover, nullptr) gave for the corners covered now, as the
+  // blurred coverage for that variance: the start tries several variances and keeps the best one's.
+  void Adopt(double variance, const std::vector<float>& cover) {
+    kernel_ = KernelFor(variance);
+    kernel_variance_ = variance;
+    std::copy_n(cover.data(), samples_.size(), Buffer(blurred_cover_, samples_.size()));
+    blurred_ = true;
   }
 
  private:
@@ -707,7 +730,7 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
   // from one fixed width cost one or two extra iterations on sharp or very blurred markers). A
   // tracked marker starts from the width its last frame's fit found.
   {
-    std::vector<float> cover;
+    thread_local std::vector<float> cover, best_cover;
     fit.Cover(start);
     double best = std::numeric_limits<double>::infinity();
     const double warm = std::min(blur, kMaxBlurVariance);
@@ -735,9 +758,13 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
         params[8] = x[0];
         params[9] = x[1];
         params[kBlur] = variance;
+        if (v + 1 < count) best_cover.assign(cover.begin(), cover.begin() + fit.size());
       }
     }
     if (!std::isfinite(best)) return false;
+    // The first normal equations blur with the best variance: the last one tried is still there, any
+    // other is taken back rather than blurred again.
+    if (params[kBlur] != variances[count - 1]) fit.Adopt(params[kBlur], best_cover);
   }
   const double contrast = std::abs(params[9]);
   if (!(contrast > 10.0)) return false;  // no pattern to fit (or a wrong id)
