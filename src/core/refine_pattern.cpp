@@ -65,73 +65,51 @@ constexpr double kConverged = 1e-3;  // px: smaller steps changed corners by < 0
 
 double Cross(const Vec2& a, const Vec2& b) { return a.x * b.y - a.y * b.x; }
 
-// Area of the pixel square [x0, x0 + 1] x [y0, y0 + 1] inside the convex quad q (orientation s = +1
-// when q's shoelace area is positive). Sutherland-Hodgman against the quad's edges whose bit is set in
-// `crossing`: an edge with the whole square on its inner side cuts nothing (most boundary pixels
-// meet one edge).
-double ClippedArea(const std::array<Vec2, 4>& q, double s, double x0, double y0, unsigned crossing) {
-  Vec2 a[12], b[12];
-  int n = 4;
-  a[0] = {x0, y0};
-  a[1] = {x0 + 1, y0};
-  a[2] = {x0 + 1, y0 + 1};
-  a[3] = {x0, y0 + 1};
-  Vec2* in = a;
-  Vec2* out = b;
-  for (int e = 0; e < 4 && n > 0; ++e) {
-    if (!(crossing & (1u << e))) continue;
-    const Vec2 p = q[e], d = q[(e + 1) % 4] - q[e];
-    int m = 0;
-    for (int i = 0; i < n; ++i) {
-      const Vec2& u = in[i];
-      const Vec2& v = in[(i + 1) % n];
-      const double su = s * Cross(d, u - p), sv = s * Cross(d, v - p);
-      if (su >= 0) out[m++] = u;
-      if ((su >= 0) != (sv >= 0)) out[m++] = u + (v - u) * (su / (su - sv));
+// Walks the segment from a to b through the pixels it crosses, in plane coordinates (pixel column i
+// is [i, i + 1), row j [j, j + 1)): visit(i, j, t0, t1) for each piece of it inside one pixel, t the
+// segment's parameter (0 at a, 1 at b), in order. A line enters a pixel once, so each pixel gets
+// one piece.
+template <typename Visit>
+ARUCOTAG_INLINE void WalkSegment(const Vec2& a, const Vec2& b, const Visit& visit) {
+  const Vec2 d = b - a;
+  int ix = static_cast<int>(std::floor(a.x)), iy = static_cast<int>(std::floor(a.y));
+  const int step_x = d.x > 0 ? 1 : -1, step_y = d.y > 0 ? 1 : -1;
+  constexpr double kNever = std::numeric_limits<double>::infinity();
+  // Where the segment next crosses a column boundary and a row boundary, and the parameter per
+  // column and per row.
+  double next_x = d.x != 0.0 ? ((d.x > 0 ? ix + 1 : ix) - a.x) / d.x : kNever;
+  double next_y = d.y != 0.0 ? ((d.y > 0 ? iy + 1 : iy) - a.y) / d.y : kNever;
+  const double per_x = d.x != 0.0 ? 1.0 / std::abs(d.x) : kNever, per_y = d.y != 0.0 ? 1.0 / std::abs(d.y) : kNever;
+  // The pixels between the ends (and two for round-off at a pixel corner): a bound on the steps.
+  const int pixels = std::abs(static_cast<int>(std::floor(b.x)) - ix) + std::abs(static_cast<int>(std::floor(b.y)) - iy);
+  double t0 = 0.0;
+  for (int step = 0; step <= pixels + 2 && t0 < 1.0; ++step) {
+    const double t1 = std::min({next_x, next_y, 1.0});
+    if (t1 > t0) visit(ix, iy, t0, t1);
+    t0 = t1;
+    if (next_x <= next_y) {
+      ix += step_x;
+      next_x += per_x;
+    } else {
+      iy += step_y;
+      next_y += per_y;
     }
-    n = m;
-    std::swap(in, out);
   }
-  double area = 0.0;
-  for (int i = 0; i < n; ++i) area += Cross(in[i], in[(i + 1) % n]);
-  return 0.5 * std::abs(area);
 }
 
-// Parameter range [t0, t1] of segment a + t (b - a), t in [0, 1], inside the square
-// [x0, x0 + 1] x [y0, y0 + 1] (Liang-Barsky); false when it misses.
-bool SegmentInSquare(const Vec2& a, const Vec2& b, double x0, double y0, double& t0, double& t1) {
-  t0 = 0.0;
-  t1 = 1.0;
-  const double d[2] = {b.x - a.x, b.y - a.y};
-  const double lo[2] = {x0 - a.x, y0 - a.y};
-  for (int k = 0; k < 2; ++k) {
-    const double hi = lo[k] + 1.0;
-    if (std::abs(d[k]) < 1e-12) {
-      if (lo[k] > 0 || hi < 0) return false;
-      continue;
-    }
-    double ta = lo[k] / d[k], tb = hi / d[k];
-    if (ta > tb) std::swap(ta, tb);
-    t0 = std::max(t0, ta);
-    t1 = std::min(t1, tb);
-    if (t0 >= t1) return false;
+// A piece of a polygon edge inside row `row` of a plane `width` wide (plane coordinates, see
+// WalkSegment), from x0 to x1 (within column ix) rising by `rise` (its height, signed by the
+// polygon's orientation): the area it adds to each pixel of the row goes to the row's steps, whose
+// sum from the left is each pixel's covered area (the trapezoids of a closed polygon's edges add up
+// to its area). A piece left of the plane passes its whole height on.
+ARUCOTAG_INLINE void AddAreaStep(double* steps, int ix, double x0, double x1, double rise) {
+  if (ix < 0) {
+    steps[0] += rise;
+    return;
   }
-  return true;
-}
-
-// The x extent [x0, x1] of the convex quad q along the horizontal line at y; false when the line
-// misses it.
-bool SpanAt(const std::array<Vec2, 4>& q, double y, double& x0, double& x1) {
-  x0 = 1e18;
-  x1 = -1e18;
-  for (int e = 0; e < 4; ++e) {
-    const Vec2 &a = q[e], &b = q[(e + 1) % 4];
-    if ((a.y - y) * (b.y - y) > 0 || a.y == b.y) continue;
-    const double x = a.x + (b.x - a.x) * (y - a.y) / (b.y - a.y);
-    x0 = std::min(x0, x);
-    x1 = std::max(x1, x);
-  }
-  return x0 <= x1;
+  const double middle = 0.5 * (x0 + x1) - ix;
+  steps[ix] += rise * (1.0 - middle);
+  steps[ix + 1] += rise * middle;
 }
 
 // Homography taking grid coordinates (u, v) in [0, cells]^2 to the image, with the grid's corners
@@ -286,8 +264,11 @@ class PatternFit {
         }
       }
     }
-    ZeroedBuffer(coverage_, static_cast<size_t>(roi_.area()));
-    Buffer(slopes_, static_cast<size_t>(roi_.area()) * kSlopes);  // zeroed per pixel in AddQuad
+    const int width = roi_.width, height = roi_.height;
+    // Each row's signed-area accumulator has one more column than the plane (what the rightmost
+    // column passes on).
+    ZeroedBuffer(area_steps_, static_cast<size_t>(height) * (width + 1));
+    Buffer(slopes_, static_cast<size_t>(roi_.area()) * kSlopes);  // zeroed per pixel in AddEdges
     ZeroedBuffer(on_boundary_, static_cast<size_t>(roi_.area()));
     boundary_.clear();
     // A run of black cells along a row is one convex quad under the homography: fewer, larger
@@ -304,8 +285,19 @@ class PatternFit {
         const int ids[4] = {row * n + col, row * n + end, (row + 1) * n + end, (row + 1) * n + col};
         std::array<Vec2, 4> q;
         for (int i = 0; i < 4; ++i) q[i] = vertices_[ids[i]];
-        AddQuad(q, ids);
+        AddEdges(q, ids);
         col = end;
+      }
+    }
+    // The coverage: each row's accumulated steps summed from the left.
+    Buffer(coverage_, static_cast<size_t>(roi_.area()));
+    for (int y = 0; y < height; ++y) {
+      const double* steps = &area_steps_[static_cast<size_t>(y) * (width + 1)];
+      float* covered = &coverage_[static_cast<size_t>(y) * width];
+      double sum = 0.0;
+      for (int x = 0; x < width; ++x) {
+        sum += steps[x];
+        covered[x] = static_cast<float>(sum);
       }
     }
   }
@@ -473,124 +465,49 @@ class PatternFit {
                     box.height + 2 * kBlurRadius);
   }
 
-  void AddQuad(const std::array<Vec2, 4>& q, const int ids[4]) {
+  // The quad's edges, each walked through the pixels it crosses: in each, the signed area between the
+  // edge and the row's right end goes to the row's steps (AddAreaStep; summed from the left, the
+  // steps of all the quads' edges give each pixel's covered area exactly, the two runs' copies of an
+  // edge they share cancelling), and the edge's share of the corner derivatives to the pixel's slopes
+  // (the length of edge inside the pixel, split between its two end vertices). Only the pixels the
+  // edges cross are visited: classifying every pixel of each quad's outline against its four edges
+  // and clipping it cost twice as many instructions.
+  void AddEdges(const std::array<Vec2, 4>& q, const int ids[4]) {
     double shoelace = 0.0;
     for (int i = 0; i < 4; ++i) shoelace += Cross(q[i], q[(i + 1) % 4]);
     const double s = shoelace >= 0 ? 1.0 : -1.0;
-    // Each edge's side function s * Cross(d, p - q[e]) (>= 0 inside) is linear in p: at + per_x x +
-    // per_y y; over a pixel square from its corner (x, y) it ranges from its value there plus `lowest`
-    // to that plus `highest`.
-    struct Side {
-      double at, per_x, per_y, lowest, highest;
-    };
-    std::array<Side, 4> sides;
+    const int width = roi_.width, height = roi_.height;
+    // Pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5]: plane column x - roi_.x.
+    const Vec2 shift(0.5 - roi_.x, 0.5 - roi_.y);
     for (int e = 0; e < 4; ++e) {
-      const Vec2 d = q[(e + 1) % 4] - q[e];
-      Side& side = sides[e];
-      side.per_x = -s * d.y;
-      side.per_y = s * d.x;
-      side.at = -(side.per_x * q[e].x + side.per_y * q[e].y);
-      side.lowest = std::min(0.0, side.per_x) + std::min(0.0, side.per_y);
-      side.highest = std::max(0.0, side.per_x) + std::max(0.0, side.per_y);
-    }
-    double qy0 = q[0].y, qy1 = q[0].y;
-    for (const Vec2& p : q) {
-      qy0 = std::min(qy0, p.y);
-      qy1 = std::max(qy1, p.y);
-    }
-    // Pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5].
-    const int ya = std::max(roi_.y, static_cast<int>(std::floor(qy0 + 0.5)));
-    const int yb = std::min(roi_.y + roi_.height - 1, static_cast<int>(std::ceil(qy1 - 0.5)));
-    for (int y = ya; y <= yb; ++y) {
-      // The quad's x extent within this pixel row: its vertices in the band and its edges' crossings
-      // of the band's two lines.
-      const double band0 = y - 0.5, band1 = y + 0.5;
-      double qx0 = 1e18, qx1 = -1e18;
-      for (int e = 0; e < 4; ++e) {
-        const Vec2 &a = q[e], &b = q[(e + 1) % 4];
-        if (a.y >= band0 && a.y <= band1) {
-          qx0 = std::min(qx0, a.x);
-          qx1 = std::max(qx1, a.x);
-        }
-        for (const double line : {band0, band1}) {
-          if ((a.y - line) * (b.y - line) < 0) {
-            const double x = a.x + (b.x - a.x) * (line - a.y) / (b.y - a.y);
-            qx0 = std::min(qx0, x);
-            qx1 = std::max(qx1, x);
-          }
-        }
-      }
-      if (qx0 > qx1) continue;
-      const int xa = std::max(roi_.x, static_cast<int>(std::floor(qx0 + 0.5)));
-      const int xb = std::min(roi_.x + roi_.width - 1, static_cast<int>(std::ceil(qx1 - 0.5)));
-      // Pixels the quad covers whole: its left bound is convex and its right bound concave in y, so
-      // over the band they are tightest at the band's lines.
-      double top0, top1, bottom0, bottom1;
-      int inner_a = xb + 1, inner_b = xb;
-      if (SpanAt(q, band0, top0, top1) && SpanAt(q, band1, bottom0, bottom1)) {
-        inner_a = static_cast<int>(std::ceil(std::max(top0, bottom0) + 0.5));
-        inner_b = static_cast<int>(std::floor(std::min(top1, bottom1) - 0.5));
-      }
-      for (int x = xa; x <= xb; ++x) {
-        const int at = (y - roi_.y) * roi_.width + (x - roi_.x);
-        float& covered = coverage_[static_cast<size_t>(at)];
-        if (x >= inner_a && x <= inner_b) {
-          covered += 1.0f;
-          continue;
-        }
-        const double px = x - 0.5, py = y - 0.5;
-        // Inside every edge with all four pixel corners: fully covered, no boundary to move.
-        unsigned crossing = 0;
-        bool outside = false;
-        double deepest = 0.0;  // the lowest side value over the pixel, of the last crossing edge
-        for (int e = 0; e < 4 && !outside; ++e) {
-          const double at_corner = sides[e].at + sides[e].per_x * px + sides[e].per_y * py;
-          if (at_corner + sides[e].lowest < 0) {
-            crossing |= 1u << e;
-            deepest = at_corner + sides[e].lowest;
-          }
-          outside = at_corner + sides[e].highest < 0;
-        }
-        if (outside) continue;
-        if (!crossing) {
-          covered += 1.0f;
-          continue;
-        }
-        if (!(crossing & (crossing - 1))) {
-          // One edge crosses the pixel (most boundary pixels): the quad covers what that edge's
-          // half-plane does.
-          const Side& side = sides[__builtin_ctz(crossing)];
-          covered += static_cast<float>(1.0 - internal::BelowLine(-deepest, std::abs(side.per_x), std::abs(side.per_y)));
-        } else {
-          covered += static_cast<float>(ClippedArea(q, s, px, py, crossing));
-        }
+      const Vec2 a = q[e] + shift, b = q[(e + 1) % 4] + shift;
+      const Vec2 d = b - a;
+      // Outward unit normal times edge length: (dy, -dx) for a positively oriented quad.
+      const Vec2 nl(s * d.y, -s * d.x);
+      SlopeVector ja_x, ja_y, jb_x, jb_y;
+      LoadSlopes(&vertex_jac_[ids[e] * 16], ja_x);
+      LoadSlopes(&vertex_jac_[ids[e] * 16 + 8], ja_y);
+      LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16], jb_x);
+      LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16 + 8], jb_y);
+      WalkSegment(a, b, [&](int ix, int iy, double t0, double t1) {
+        if (iy < 0 || iy >= height || ix >= width) return;  // no pixel of the plane right of it
+        AddAreaStep(&area_steps_[static_cast<size_t>(iy) * (width + 1)], ix, a.x + t0 * d.x, a.x + t1 * d.x,
+                    -s * (t1 - t0) * d.y);
+        if (ix < 0) return;
+        const int at = iy * width + ix;
+        float* out = &slopes_[static_cast<size_t>(at) * kSlopes];
         if (!on_boundary_[static_cast<size_t>(at)]) {
           on_boundary_[static_cast<size_t>(at)] = 1;
           boundary_.push_back(at);
-          std::fill_n(&slopes_[static_cast<size_t>(at) * kSlopes], kSlopes, 0.0f);
+          std::fill_n(out, kSlopes, 0.0f);
         }
-        float* out = &slopes_[static_cast<size_t>(at) * kSlopes];
-        for (int e = 0; e < 4; ++e) {
-          // An edge with the whole pixel on its inner side does not pass through it.
-          if (!(crossing & (1u << e))) continue;
-          const Vec2 &a = q[e], &b = q[(e + 1) % 4];
-          double t0, t1;
-          if (!SegmentInSquare(a, b, px, py, t0, t1)) continue;
-          const Vec2 d = b - a;
-          // Outward unit normal times edge length: (dy, -dx) for a positively oriented quad.
-          const Vec2 nl(s * d.y, -s * d.x);
-          const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
-          const float ax = static_cast<float>(wa * nl.x), ay = static_cast<float>(wa * nl.y);
-          const float bx = static_cast<float>(wb * nl.x), by = static_cast<float>(wb * nl.y);
-          SlopeVector ja_x, ja_y, jb_x, jb_y, sum;
-          LoadSlopes(&vertex_jac_[ids[e] * 16], ja_x);
-          LoadSlopes(&vertex_jac_[ids[e] * 16 + 8], ja_y);
-          LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16], jb_x);
-          LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16 + 8], jb_y);
-          LoadSlopes(out, sum);
-          StoreSlopes(out, sum + (ax * ja_x + ay * ja_y + bx * jb_x + by * jb_y));
-        }
-      }
+        const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
+        const float ax = static_cast<float>(wa * nl.x), ay = static_cast<float>(wa * nl.y);
+        const float bx = static_cast<float>(wb * nl.x), by = static_cast<float>(wb * nl.y);
+        SlopeVector sum;
+        LoadSlopes(out, sum);
+        StoreSlopes(out, sum + (ax * ja_x + ay * ja_y + bx * jb_x + by * jb_y));
+      });
     }
   }
 
@@ -613,6 +530,7 @@ class PatternFit {
     std::vector<Vec2> vertices;
     std::vector<float> vertex_jac;  // per grid vertex: d x / d corners (8), d y / d corners (8)
     std::vector<float> coverage, slopes, rows, slope_rows, padded, column, blurred_cover;
+    std::vector<double> area_steps;
     std::vector<uchar> on_boundary;
     std::vector<int> boundary;
   };
@@ -627,6 +545,7 @@ class PatternFit {
   // The coverage plane, and the corner derivatives of the pixels in `boundary_` (the only non-zero
   // ones; `on_boundary_` marks them).
   std::vector<float>&coverage_ = scratch_.coverage, &slopes_ = scratch_.slopes;
+  std::vector<double>& area_steps_ = scratch_.area_steps;
   std::vector<uchar>& on_boundary_ = scratch_.on_boundary;
   std::vector<int>& boundary_ = scratch_.boundary;
   std::vector<float>&rows_ = scratch_.rows, &slope_rows_ = scratch_.slope_rows, &padded_ = scratch_.padded,
@@ -848,14 +767,27 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
 
 namespace internal {
 
-double BelowLine(double t, double a, double b) {
-  if (a > b) std::swap(a, b);
-  if (t >= a + b) return 1.0;
-  if (a <= 1e-12 * b) return std::min(t / b, 1.0);  // the line runs along x or y
-  if (t <= a) return t * t / (2.0 * a * b);          // a corner triangle
-  if (t <= b) return (2.0 * t - a) / (2.0 * b);      // a trapezoid
-  const double rest = a + b - t;                     // all but the opposite corner's triangle
-  return 1.0 - rest * rest / (2.0 * a * b);
+cv::Mat PolygonCoverage(const std::vector<cv::Point2d>& polygon, const cv::Size& size) {
+  const int width = size.width, height = size.height;
+  std::vector<double> steps(static_cast<size_t>(height) * (width + 1), 0.0);
+  double shoelace = 0.0;
+  for (size_t i = 0; i < polygon.size(); ++i) shoelace += Cross(polygon[i], polygon[(i + 1) % polygon.size()]);
+  const double s = shoelace >= 0 ? 1.0 : -1.0;
+  const Vec2 shift(0.5, 0.5);  // pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5]
+  for (size_t e = 0; e < polygon.size(); ++e) {
+    const Vec2 a = polygon[e] + shift, b = polygon[(e + 1) % polygon.size()] + shift, d = b - a;
+    WalkSegment(a, b, [&](int ix, int iy, double t0, double t1) {
+      if (iy < 0 || iy >= height || ix >= width) return;
+      AddAreaStep(&steps[static_cast<size_t>(iy) * (width + 1)], ix, a.x + t0 * d.x, a.x + t1 * d.x,
+                  -s * (t1 - t0) * d.y);
+    });
+  }
+  cv::Mat coverage(size, CV_64F);
+  for (int y = 0; y < height; ++y) {
+    double sum = 0.0;
+    for (int x = 0; x < width; ++x) coverage.at<double>(y, x) = sum += steps[static_cast<size_t>(y) * (width + 1) + x];
+  }
+  return coverage;
 }
 
 size_t PatternFitEvaluations() { return evaluations; }

@@ -3,6 +3,7 @@
 
 #include <array>
 #include <cstddef>
+#include <vector>
 
 #include <opencv2/core.hpp>
 
@@ -13,10 +14,10 @@ namespace arucotag::internal {
 /// cells of 4 px or more, and at most about 6000 for markers over about 95 px (a sparser lattice).
 size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv::Point2f, 4>& corners);
 
-/// Area of {a u + b v < t} within the unit square u, v in [0, 1], for a, b >= 0 (not both 0) and
-/// t >= 0: the part of a pixel below a line whose value rises by a along x and by b along y from the
-/// pixel's lowest corner, where it is -t. The exact coverage of a pixel that one marker edge crosses.
-double BelowLine(double t, double a, double b);
+/// The area of each pixel of a `size` image (pixel (x, y) is [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5])
+/// that the simple polygon covers, CV_64F: the pattern fit's coverage (its edges walked through the
+/// pixels they cross, the signed area of each piece accumulated along its row), for any polygon.
+cv::Mat PolygonCoverage(const std::vector<cv::Point2d>& polygon, const cv::Size& size);
 
 /// How many times the fit has evaluated its cost (and normal equations) on this thread so far: what
 /// fits cost, counted rather than timed.

@@ -68,26 +68,45 @@ SmallMarker RenderSmallMarker(int id, double blur, double noise) {
   return out;
 }
 
-// The closed-form pixel area under a line against a 2000 x 2000 midpoint grid, over slopes from
-// axis-parallel to diagonal and offsets from a corner to the whole pixel.
-TEST(PatternFit, AreaBelowALineMatchesIntegration) {
-  constexpr int kGrid = 2000;
+// The fit's pixel coverage (edges walked through the pixels they cross, signed areas accumulated
+// along rows) against a 250 x 250 midpoint grid in every pixel: quads at any angle (axis-parallel
+// edges, edges through pixel corners, sub-pixel slivers), both orientations, a triangle and a concave
+// polygon, and polygons that leave the image on every side.
+TEST(PatternFit, PixelCoverageMatchesIntegration) {
+  constexpr int kGrid = 250;
+  const cv::Size size(9, 7);
+  const std::vector<std::vector<cv::Point2d>> polygons = {
+      {{1.5, 1.5}, {6.5, 1.5}, {6.5, 4.5}, {1.5, 4.5}},              // on pixel boundaries
+      {{1.2, 0.7}, {7.1, 2.3}, {5.9, 6.2}, {0.4, 4.8}},              // tilted
+      {{0.4, 4.8}, {5.9, 6.2}, {7.1, 2.3}, {1.2, 0.7}},              // the other orientation
+      {{2.0, 2.0}, {6.0, 2.0}, {6.0, 2.0 + 1e-3}, {2.0, 2.0 + 1e-3}},  // a sliver
+      {{3.0, 0.5}, {7.3, 5.9}, {0.6, 3.5}},                          // a triangle
+      {{0.5, 0.5}, {7.5, 0.5}, {4.0, 3.0}, {7.5, 5.5}, {0.5, 5.5}},  // concave
+      {{-2.3, -1.7}, {11.2, 0.4}, {9.6, 8.9}, {-1.1, 7.6}},          // past every side
+      {{2.5, 2.5}, {3.5, 2.5}, {3.5, 3.5}, {2.5, 3.5}},              // one pixel exactly
+  };
   double worst = 0.0;
-  for (const auto& [a, b] : {std::pair{0.0, 1.0}, {1.0, 0.0}, {0.3, 1.0}, {1.0, 1.0}, {2.5, 0.7}, {0.01, 3.0}}) {
-    for (const double share : {0.0, 0.05, 0.2, 0.5, 0.8, 0.97, 1.0, 1.3}) {
-      const double t = share * (a + b);
-      long below = 0;
-      for (int j = 0; j < kGrid; ++j) {
-        const double v = (j + 0.5) / kGrid;
-        for (int i = 0; i < kGrid; ++i) below += a * (i + 0.5) / kGrid + b * v < t;
+  for (const auto& polygon : polygons) {
+    const cv::Mat coverage = internal::PolygonCoverage(polygon, size);
+    cv::Mat inside(kGrid, kGrid, CV_8UC1);
+    for (int y = 0; y < size.height; ++y) {
+      for (int x = 0; x < size.width; ++x) {
+        std::vector<cv::Point2f> outline(polygon.begin(), polygon.end());
+        long covered = 0;
+        for (int j = 0; j < kGrid; ++j) {
+          for (int i = 0; i < kGrid; ++i) {
+            const cv::Point2f p(static_cast<float>(x - 0.5 + (i + 0.5) / kGrid), static_cast<float>(y - 0.5 + (j + 0.5) / kGrid));
+            covered += cv::pointPolygonTest(outline, p, false) > 0;
+          }
+        }
+        const double expected = static_cast<double>(covered) / (kGrid * kGrid);
+        worst = std::max(worst, std::abs(coverage.at<double>(y, x) - expected));
+        EXPECT_NEAR(coverage.at<double>(y, x), expected, 5e-3) << "polygon " << (&polygon - polygons.data())
+                                                                << " pixel " << x << ", " << y;
       }
-      const double expected = static_cast<double>(below) / (kGrid * kGrid);
-      const double area = internal::BelowLine(t, a, b);
-      worst = std::max(worst, std::abs(area - expected));
-      EXPECT_NEAR(area, expected, 2e-3) << "a " << a << " b " << b << " t " << t;
     }
   }
-  std::printf("closed-form area against integration: worst difference %.2g\n", worst);
+  std::printf("pixel coverage against integration: worst difference %.2g\n", worst);
 }
 
 // From corners 0.7 px off in different directions, the fit lands within a few hundredths, sharp or
