@@ -7,9 +7,10 @@
 // that the exact pixel-area coverage of the black cells, blurred by a Gaussian of fitted width (the
 // lens), times a contrast plus a brightness and a brightness gradient, matches the grey values of
 // all pixels of the marker and a strip of its quiet zone (Gauss-Newton with Levenberg damping and
-// Huber weights). Coverage and its derivatives are exact: each pixel square is clipped against each
-// projected cell, and moving a cell edge changes the covered area by the length of that edge inside
-// the pixel. Without the blur term a camera's 0.5-1 px blur pulls thin cells' edges apart and the fit
+// Huber weights). Coverage and its derivatives are exact: each projected run of black cells' edges
+// are walked through the pixels they cross, each piece adding its signed area to its row (summed
+// from the left, the covered area of every pixel), and moving a cell edge changes the covered area
+// by the length of that edge inside the pixel. Without the blur term a camera's 0.5-1 px blur pulls thin cells' edges apart and the fit
 // ends up worse than the edge fit it starts from.
 #include <arucotag/refine.hpp>
 
