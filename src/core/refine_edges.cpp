@@ -118,8 +118,9 @@ double NearestCrossing(double dark, double light, double level, int half, double
   return std::numeric_limits<double>::infinity();
 }
 
-// The offset (px) of the edge on a whole profile (see NearestCrossing for the arguments): by the area under it normalised to [0, 1] where exactly one rising crossing
-// of `level` lies on it, else that nearest crossing; infinity without a crossing.
+// The offset (px) of the edge on a whole profile (see NearestCrossing for the arguments): by the area
+// under it normalised to [0, 1] where exactly one rising crossing of `level` lies on it, else by the
+// crossing nearest the middle; infinity without a crossing.
 template <typename Sample>
 double AreaOffset(double dark, double light, double level, int half, double step, const Sample& sample) {
   const int samples = 2 * half + 1;

@@ -7,11 +7,11 @@
 // that the exact pixel-area coverage of the black cells, blurred by a Gaussian of fitted width (the
 // lens), times a contrast plus a brightness and a brightness gradient, matches the grey values of
 // all pixels of the marker and a strip of its quiet zone (Gauss-Newton with Levenberg damping and
-// Huber weights). Coverage and its derivatives are exact: each projected run of black cells' edges
-// are walked through the pixels they cross, each piece adding its signed area to its row (summed
-// from the left, the covered area of every pixel), and moving a cell edge changes the covered area
-// by the length of that edge inside the pixel. Without the blur term a camera's 0.5-1 px blur pulls thin cells' edges apart and the fit
-// ends up worse than the edge fit it starts from.
+// Huber weights). Coverage and its derivatives are exact: the edges of each projected run of black
+// cells are walked through the pixels they cross, each piece adding its signed area to its row
+// (summed from the left, the covered area of every pixel), and moving a cell edge changes the
+// covered area by the length of that edge inside the pixel. Without the blur term a camera's 0.5-1 px
+// blur pulls thin cells' edges apart and the fit ends up worse than the edge fit it starts from.
 #include <arucotag/refine.hpp>
 
 #include "geometry.hpp"
@@ -82,7 +82,8 @@ ARUCOTAG_INLINE void WalkSegment(const Vec2& a, const Vec2& b, const Visit& visi
   double next_y = d.y != 0.0 ? ((d.y > 0 ? iy + 1 : iy) - a.y) / d.y : kNever;
   const double per_x = d.x != 0.0 ? 1.0 / std::abs(d.x) : kNever, per_y = d.y != 0.0 ? 1.0 / std::abs(d.y) : kNever;
   // The pixels between the ends (and two for round-off at a pixel corner): a bound on the steps.
-  const int pixels = std::abs(static_cast<int>(std::floor(b.x)) - ix) + std::abs(static_cast<int>(std::floor(b.y)) - iy);
+  const int pixels =
+      std::abs(static_cast<int>(std::floor(b.x)) - ix) + std::abs(static_cast<int>(std::floor(b.y)) - iy);
   double t0 = 0.0;
   for (int step = 0; step <= pixels + 2 && t0 < 1.0; ++step) {
     const double t1 = std::min({next_x, next_y, 1.0});

@@ -95,7 +95,8 @@ TEST(PatternFit, PixelCoverageMatchesIntegration) {
         long covered = 0;
         for (int j = 0; j < kGrid; ++j) {
           for (int i = 0; i < kGrid; ++i) {
-            const cv::Point2f p(static_cast<float>(x - 0.5 + (i + 0.5) / kGrid), static_cast<float>(y - 0.5 + (j + 0.5) / kGrid));
+            const cv::Point2f p(static_cast<float>(x - 0.5 + (i + 0.5) / kGrid),
+                                static_cast<float>(y - 0.5 + (j + 0.5) / kGrid));
             covered += cv::pointPolygonTest(outline, p, false) > 0;
           }
         }
