@@ -222,6 +222,9 @@ class PatternFit {
   }
 
   size_t size() const { return samples_.size(); }
+  // Whether the last Cover's corners keep the marker's grid near the coverage plane (else Cover left
+  // the plane as it was and the corners are not to be evaluated).
+  bool valid() const { return valid_; }
   // Area (px) of the marker and its quiet-zone strip: about the sample count when all of it is in
   // the image.
   double area() const { return area_; }
@@ -266,6 +269,15 @@ class PatternFit {
         }
       }
     }
+    // A trial step that throws a vertex far off the plane (or folds the quad, whose grid then runs to
+    // infinity or NaN) has no coverage to speak of: Normal gives it an infinite cost, so the step is
+    // refused, and its edges are not walked (a walk is as long as its edge).
+    const double reach = std::max(roi_.width, roi_.height);
+    valid_ = std::all_of(vertices_.begin(), vertices_.end(), [&](const Vec2& p) {
+      return p.x >= roi_.x - reach && p.x <= roi_.x + roi_.width + reach && p.y >= roi_.y - reach &&
+             p.y <= roi_.y + roi_.height + reach;
+    });
+    if (!valid_) return;
     const int width = roi_.width, height = roi_.height;
     // Each row's signed-area accumulator has one more column than the plane (what the rightmost
     // column passes on).
@@ -530,6 +542,7 @@ class PatternFit {
   Vec2 origin_;
   double area_ = 0.0;
   bool covered_ = false;
+  bool valid_ = false;
   // The last kernel and whether blurred_cover_ holds the coverage blurred by it (Blurred).
   double kernel_variance_ = std::numeric_limits<double>::quiet_NaN();
   Kernel kernel_;
@@ -604,6 +617,7 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
   for (int i = 0; i < 4; ++i) corners[i] = {params[2 * i], params[2 * i + 1]};
   thread_local std::vector<float> cover, jac, wider, columns;
   fit.Cover(corners);
+  if (!fit.valid()) return std::numeric_limits<double>::infinity();
   fit.Blurred(params[kBlur], cover, jtj ? &jac : nullptr);
   // The blur derivative by a forward difference: the sampled kernel has no simple closed form.
   const double blur_step = 0.02 + 0.02 * params[kBlur];
@@ -674,6 +688,7 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
   {
     thread_local std::vector<float> cover, best_cover;
     fit.Cover(start);
+    if (!fit.valid()) return false;
     double best = std::numeric_limits<double>::infinity();
     const double warm = std::min(blur, kMaxBlurVariance);
     const bool warm_start = blur >= 0.0;
