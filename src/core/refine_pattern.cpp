@@ -99,9 +99,9 @@ ARUCOTAG_INLINE void WalkSegment(const Vec2& a, const Vec2& b, const Visit& visi
   }
 }
 
-// A piece of a polygon edge inside row `row` of a plane `width` wide (plane coordinates, see
-// WalkSegment), from x0 to x1 (within column ix) rising by `rise` (its height, signed by the
-// polygon's orientation): the area it adds to each pixel of the row goes to the row's steps, whose
+// A piece of a polygon edge inside one pixel of a row (plane coordinates, see WalkSegment), from x0 to
+// x1 within column ix, rising by `rise` (its height, signed by the polygon's orientation): the area it
+// adds to each pixel of the row goes to the row's steps (one longer than the plane is wide), whose
 // sum from the left is each pixel's covered area (the trapezoids of a closed polygon's edges add up
 // to its area). A piece left of the plane passes its whole height on.
 ARUCOTAG_INLINE void AddAreaStep(double* steps, int ix, double x0, double x1, double rise) {
