@@ -99,19 +99,51 @@ ARUCOTAG_INLINE void WalkSegment(const Vec2& a, const Vec2& b, const Visit& visi
   }
 }
 
-// A piece of a polygon edge inside one pixel of a row (plane coordinates, see WalkSegment), from x0 to
-// x1 within column ix, rising by `rise` (its height, signed by the polygon's orientation): the area it
-// adds to each pixel of the row goes to the row's steps (one longer than the plane is wide), whose
-// sum from the left is each pixel's covered area (the trapezoids of a closed polygon's edges add up
-// to its area). A piece left of the plane passes its whole height on.
-ARUCOTAG_INLINE void AddAreaStep(double* steps, int ix, double x0, double x1, double rise) {
-  if (ix < 0) {
-    steps[0] += rise;
-    return;
+// +1 when the polygon's shoelace area is positive (in image coordinates), else -1.
+double Orientation(const Vec2* polygon, size_t count) {
+  double shoelace = 0.0;
+  for (size_t i = 0; i < count; ++i) shoelace += Cross(polygon[i], polygon[(i + 1) % count]);
+  return shoelace >= 0 ? 1.0 : -1.0;
+}
+
+// One edge, from a to b, of a polygon of orientation s (Orientation), in plane coordinates (see
+// WalkSegment) of a plane `width` x `height`: each piece inside a pixel adds its signed area to the
+// row's steps in `steps` (rows of width + 1: what the rightmost column passes on), whose sum from the
+// left (SumRows) is each pixel's covered area once every edge is added (the trapezoids of a closed
+// polygon's edges add up to its area; an edge two polygons share cancels). A piece left of the plane
+// passes its whole height on. The pieces on pixels of the plane then go to
+// on_piece(x, y, t0, t1).
+template <typename OnPiece>
+ARUCOTAG_INLINE void AddEdgeArea(const Vec2& a, const Vec2& b, double s, int width, int height, double* steps,
+                                 const OnPiece& on_piece) {
+  const Vec2 d = b - a;
+  WalkSegment(a, b, [&](int ix, int iy, double t0, double t1) {
+    if (iy < 0 || iy >= height || ix >= width) return;  // no pixel of the plane right of it
+    double* row = steps + static_cast<size_t>(iy) * (width + 1);
+    const double rise = -s * (t1 - t0) * d.y;
+    if (ix < 0) {
+      row[0] += rise;
+      return;
+    }
+    const double middle = 0.5 * ((a.x + t0 * d.x) + (a.x + t1 * d.x)) - ix;
+    row[ix] += rise * (1.0 - middle);
+    row[ix + 1] += rise * middle;
+    on_piece(ix, iy, t0, t1);
+  });
+}
+
+// Each row of `steps` (AddEdgeArea's) summed from the left into the `width` x `height` plane `out`.
+template <typename T>
+void SumRows(const double* steps, int width, int height, T* out) {
+  for (int y = 0; y < height; ++y) {
+    const double* row = steps + static_cast<size_t>(y) * (width + 1);
+    T* covered = out + static_cast<size_t>(y) * width;
+    double sum = 0.0;
+    for (int x = 0; x < width; ++x) {
+      sum += row[x];
+      covered[x] = static_cast<T>(sum);
+    }
   }
-  const double middle = 0.5 * (x0 + x1) - ix;
-  steps[ix] += rise * (1.0 - middle);
-  steps[ix + 1] += rise * middle;
 }
 
 // Homography taking grid coordinates (u, v) in [0, cells]^2 to the image, with the grid's corners
@@ -285,6 +317,7 @@ class PatternFit {
     Buffer(slopes_, static_cast<size_t>(roi_.area()) * kSlopes);  // zeroed per pixel in AddEdges
     ZeroedBuffer(on_boundary_, static_cast<size_t>(roi_.area()));
     boundary_.clear();
+    boundary_box_ = {width, height, -1, -1};
     // A run of black cells along a row is one convex quad under the homography: fewer, larger
     // polygons and no shared edges inside a run.
     for (int row = 0; row < cells_; ++row) {
@@ -303,17 +336,7 @@ class PatternFit {
         col = end;
       }
     }
-    // The coverage: each row's accumulated steps summed from the left.
-    Buffer(coverage_, static_cast<size_t>(roi_.area()));
-    for (int y = 0; y < height; ++y) {
-      const double* steps = &area_steps_[static_cast<size_t>(y) * (width + 1)];
-      float* covered = &coverage_[static_cast<size_t>(y) * width];
-      double sum = 0.0;
-      for (int x = 0; x < width; ++x) {
-        sum += steps[x];
-        covered[x] = static_cast<float>(sum);
-      }
-    }
+    SumRows(area_steps_.data(), width, height, Buffer(coverage_, static_cast<size_t>(roi_.area())));
   }
 
   // The coverage (and, with `jac`, its corner derivatives) at every sample after a Gaussian blur of
@@ -355,15 +378,8 @@ class PatternFit {
     // The scatter reaches the boundary pixels' rows, r columns either side of them: only that window
     // is zeroed (the whole plane was 3-4 % of Detect's instructions), and the column pass reads
     // nothing outside it.
-    int x0 = width, x1 = -1, y0 = roi_.height, y1 = -1;
-    for (const int at : boundary_) {
-      x0 = std::min(x0, at % width);
-      x1 = std::max(x1, at % width);
-      y0 = std::min(y0, at / width);
-      y1 = std::max(y1, at / width);
-    }
-    x0 = std::max(0, x0 - r);
-    x1 = std::min(width - 1, x1 + r);
+    const int x0 = std::max(0, boundary_box_.x0 - r), x1 = std::min(width - 1, boundary_box_.x1 + r);
+    const int y0 = boundary_box_.y0, y1 = boundary_box_.y1;
     Buffer(slope_rows_, static_cast<size_t>(roi_.area()) * kSlopes);
     for (int y = y0; y <= y1; ++y) {
       std::fill_n(&slope_rows_[(static_cast<size_t>(y) * width + x0) * kSlopes], (x1 - x0 + 1) * kSlopes, 0.0f);
@@ -423,7 +439,6 @@ class PatternFit {
       for (int i = row.first; i < row.end; ++i) cover[i] = sum[samples_[i].x - roi_.x];
     }
   }
-
 
   // Samples: pixels whose centre lies on the marker or within half a cell outside it (the quiet zone
   // every printed marker needs), fully inside the image. Coverage is computed over their bounding box
@@ -490,17 +505,14 @@ class PatternFit {
     }
   }
 
-  // The quad's edges, each walked through the pixels it crosses: in each, the signed area between the
-  // edge and the row's right end goes to the row's steps (AddAreaStep; summed from the left, the
-  // steps of all the quads' edges give each pixel's covered area exactly, the two runs' copies of an
-  // edge they share cancelling), and the edge's share of the corner derivatives to the pixel's slopes
-  // (the length of edge inside the pixel, split between its two end vertices). Only the pixels the
-  // edges cross are visited: classifying every pixel of each quad's outline against its four edges
-  // and clipping it cost twice as many instructions.
+  // The quad's edges, each walked through the pixels it crosses: in each, its signed area goes to the
+  // row's steps (AddEdgeArea; Cover sums them into the coverage), and the edge's share of the corner
+  // derivatives to the pixel's slopes (the length of edge inside the pixel, split between its two end
+  // vertices), the pixel to the boundary list and its box. Only the pixels the edges cross are
+  // visited: classifying every pixel of each quad's outline against its four edges and clipping it
+  // cost twice as many instructions.
   void AddEdges(const std::array<Vec2, 4>& q, const int ids[4]) {
-    double shoelace = 0.0;
-    for (int i = 0; i < 4; ++i) shoelace += Cross(q[i], q[(i + 1) % 4]);
-    const double s = shoelace >= 0 ? 1.0 : -1.0;
+    const double s = Orientation(q.data(), q.size());
     const int width = roi_.width, height = roi_.height;
     // Pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5]: plane column x - roi_.x.
     const Vec2 shift(0.5 - roi_.x, 0.5 - roi_.y);
@@ -514,16 +526,14 @@ class PatternFit {
       LoadSlopes(&vertex_jac_[ids[e] * 16 + 8], ja_y);
       LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16], jb_x);
       LoadSlopes(&vertex_jac_[ids[(e + 1) % 4] * 16 + 8], jb_y);
-      WalkSegment(a, b, [&](int ix, int iy, double t0, double t1) {
-        if (iy < 0 || iy >= height || ix >= width) return;  // no pixel of the plane right of it
-        AddAreaStep(&area_steps_[static_cast<size_t>(iy) * (width + 1)], ix, a.x + t0 * d.x, a.x + t1 * d.x,
-                    -s * (t1 - t0) * d.y);
-        if (ix < 0) return;
+      AddEdgeArea(a, b, s, width, height, area_steps_.data(), [&](int ix, int iy, double t0, double t1) {
         const int at = iy * width + ix;
         float* out = &slopes_[static_cast<size_t>(at) * kSlopes];
         if (!on_boundary_[static_cast<size_t>(at)]) {
           on_boundary_[static_cast<size_t>(at)] = 1;
           boundary_.push_back(at);
+          boundary_box_ = {std::min(boundary_box_.x0, ix), std::min(boundary_box_.y0, iy),
+                           std::max(boundary_box_.x1, ix), std::max(boundary_box_.y1, iy)};
           std::fill_n(out, kSlopes, 0.0f);
         }
         const double wb = 0.5 * (t1 * t1 - t0 * t0), wa = (t1 - t0) - wb;
@@ -550,13 +560,13 @@ class PatternFit {
   std::array<Vec2, 4> covered_corners_;
   cv::Rect roi_;  // coverage area, image coordinates (may reach past the image)
   // A row of samples (plane row y, samples [first, end), plane columns [x0, x1)), and the samples'
-  // bounds (plane columns x0..x1, rows y0..y1, inclusive).
+  // bounds and the boundary pixels' (plane columns x0..x1, rows y0..y1, inclusive; empty: x1 < x0).
   struct SampleRow {
     int y, first, end, x0, x1;
   };
   struct Bounds {
     int x0, y0, x1, y1;
-  } sampled_{};
+  } sampled_{}, boundary_box_{};
   // Per-thread scratch reused across fits: the coverage planes of a 56 px marker are a few hundred
   // kB, and fresh allocations of that size cost page faults on every fit.
   struct Scratch {
@@ -806,25 +816,15 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
 namespace internal {
 
 cv::Mat PolygonCoverage(const std::vector<cv::Point2d>& polygon, const cv::Size& size) {
-  const int width = size.width, height = size.height;
-  std::vector<double> steps(static_cast<size_t>(height) * (width + 1), 0.0);
-  double shoelace = 0.0;
-  for (size_t i = 0; i < polygon.size(); ++i) shoelace += Cross(polygon[i], polygon[(i + 1) % polygon.size()]);
-  const double s = shoelace >= 0 ? 1.0 : -1.0;
+  std::vector<double> steps(static_cast<size_t>(size.height) * (size.width + 1), 0.0);
+  const double s = Orientation(polygon.data(), polygon.size());
   const Vec2 shift(0.5, 0.5);  // pixel (x, y) covers [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5]
   for (size_t e = 0; e < polygon.size(); ++e) {
-    const Vec2 a = polygon[e] + shift, b = polygon[(e + 1) % polygon.size()] + shift, d = b - a;
-    WalkSegment(a, b, [&](int ix, int iy, double t0, double t1) {
-      if (iy < 0 || iy >= height || ix >= width) return;
-      AddAreaStep(&steps[static_cast<size_t>(iy) * (width + 1)], ix, a.x + t0 * d.x, a.x + t1 * d.x,
-                  -s * (t1 - t0) * d.y);
-    });
+    AddEdgeArea(polygon[e] + shift, polygon[(e + 1) % polygon.size()] + shift, s, size.width, size.height,
+                steps.data(), [](int, int, double, double) {});
   }
   cv::Mat coverage(size, CV_64F);
-  for (int y = 0; y < height; ++y) {
-    double sum = 0.0;
-    for (int x = 0; x < width; ++x) coverage.at<double>(y, x) = sum += steps[static_cast<size_t>(y) * (width + 1) + x];
-  }
+  SumRows(steps.data(), size.width, size.height, coverage.ptr<double>());
   return coverage;
 }
 

@@ -88,10 +88,9 @@ TEST(PatternFit, PixelCoverageMatchesIntegration) {
   double worst = 0.0;
   for (const auto& polygon : polygons) {
     const cv::Mat coverage = internal::PolygonCoverage(polygon, size);
-    cv::Mat inside(kGrid, kGrid, CV_8UC1);
+    const std::vector<cv::Point2f> outline(polygon.begin(), polygon.end());
     for (int y = 0; y < size.height; ++y) {
       for (int x = 0; x < size.width; ++x) {
-        std::vector<cv::Point2f> outline(polygon.begin(), polygon.end());
         long covered = 0;
         for (int j = 0; j < kGrid; ++j) {
           for (int i = 0; i < kGrid; ++i) {
