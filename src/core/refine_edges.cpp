@@ -82,6 +82,14 @@ Stretch EdgeStretch(double length, double near_angle, double far_angle, double b
   return {start, std::min(end, start + kFitLength), start + kFitLength >= end};
 }
 
+// The offset (px, outwards from the middle) of the crossing of `level` between sample i - 1 (`before`)
+// and sample i (`after`) of a profile of 2 half + 1 samples `step` px apart, when the profile rises
+// through it there; infinity otherwise.
+double RisingCrossing(int i, int half, double step, double level, double before, double after) {
+  return before < level && after >= level ? (i - 1 - half + (level - before) / (after - before)) * step
+                                          : std::numeric_limits<double>::infinity();
+}
+
 // The offset (px, outwards from the profile's middle) of the rising crossing of `level` nearest the
 // middle, on a profile of 2 half + 1 samples `step` px apart whose ends are `dark` and `light` and
 // whose sample i is sample(i); infinity without one. The samples are read from the middle outwards
@@ -95,8 +103,7 @@ double NearestCrossing(double dark, double light, double level, int half, double
   // Interval i runs from sample i - 1 to sample i; a crossing in it lies (i - 1 - half .. i - half)
   // steps from the middle.
   const auto crossing = [&](int i, double before, double after) {
-    return before < level && after >= level ? (i - 1 - half + (level - before) / (after - before)) * step
-                                            : std::numeric_limits<double>::infinity();
+    return RisingCrossing(i, half, step, level, before, after);
   };
   double right_before = value(half), left_after = right_before;
   for (int d = 0; d < half; ++d) {
@@ -135,7 +142,7 @@ double AreaOffset(double dark, double light, double level, int half, double step
     const double value = profile[i];
     if (before < level && value >= level) {
       ++crossings;
-      const double at = (i - 1 - half + (level - before) / (value - before)) * step;
+      const double at = RisingCrossing(i, half, step, level, before, value);
       if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
     } else if (before >= level && value < level) {
       ++crossings;
