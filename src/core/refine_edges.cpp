@@ -156,6 +156,26 @@ double AreaOffset(double dark, double light, double level, int half, double step
   return crossings == 1 ? half * step - area : crossing;
 }
 
+// The k-th smallest of values[0..count) (k = 0: the smallest), with sign -1 the k-th largest: what
+// sorting them and reading that element gives, for k < kKept. Each value passes once through the
+// kKept smallest so far, held sorted by a min and a max per place, without branches: an insertion
+// sort of sixteen profile ends mispredicted a branch on most of them (perf: a sixth of the edge fit's
+// time).
+constexpr int kKept = kProfilesPerEdge / 4 + 1;
+double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int k, double sign) {
+  std::array<double, kKept> kept;
+  kept.fill(std::numeric_limits<double>::infinity());
+  for (int i = 0; i < count; ++i) {
+    double value = sign * values[i];
+    for (double& place : kept) {
+      const double low = std::min(place, value);
+      value = std::max(place, value);
+      place = low;
+    }
+  }
+  return sign * kept[k];
+}
+
 // Sub-pixel points of the edge from `from` towards `to`, on the stretch from `start` to `stop` px
 // along it. `outward` is the unit normal pointing from the marker's black border to the white
 // surround; `border` the black border's thickness across the edge (px). At most `profile_count`
@@ -222,10 +242,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // and the lighter quarter of the light ends. On 640x480 frames of 50 markers (16-40 px), started
   // from the true corners, the worst corner's p95 fell from 0.40 to 0.25 px (the fast configuration
   // from the detector's: 0.61 -> 0.31 px).
-  std::array<double, kProfilesPerEdge> sorted_dark = darks, sorted_light = lights;
-  std::sort(sorted_dark.begin(), sorted_dark.begin() + read);
-  std::sort(sorted_light.begin(), sorted_light.begin() + read);
-  const double edge_dark = sorted_dark[read / 4], edge_light = sorted_light[read - 1 - read / 4];
+  const double edge_dark = Ranked(darks, read, read / 4, 1.0), edge_light = Ranked(lights, read, read / 4, -1.0);
   const double level = 0.5 * (edge_dark + edge_light);
   int found = 0;
   for (int k = 0; k < read; ++k) {
