@@ -135,25 +135,27 @@ double AreaOffset(double dark, double light, double level, int half, double step
   profile[0] = dark;
   profile[samples - 1] = light;
   for (int i = 1; i + 1 < samples; ++i) profile[i] = sample(i);
-  int crossings = 0;
-  double area = 0.0, crossing = std::numeric_limits<double>::infinity();
-  double before = dark;  // the sample at i - 1
+  // The crossings counted without branches (where they fall is noise: a branch on each mispredicted).
+  int rising = 0, falling = 0;
+  double area = 0.0;
   for (int i = 1; i < samples; ++i) {
-    const double value = profile[i];
-    if (before < level && value >= level) {
-      ++crossings;
-      const double at = RisingCrossing(i, half, step, level, before, value);
-      if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
-    } else if (before >= level && value < level) {
-      ++crossings;
-    }
+    const double before = profile[i - 1], value = profile[i];
+    rising += (before < level) & (value >= level);
+    falling += (before >= level) & (value < level);
     area += before + value;
-    before = value;
   }
-  if (!std::isfinite(crossing)) return crossing;
-  // Trapezoid rule over the profile normalised to [0, 1].
-  area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
-  return crossings == 1 ? half * step - area : crossing;
+  if (rising == 0) return std::numeric_limits<double>::infinity();
+  if (rising + falling == 1) {
+    // Trapezoid rule over the profile normalised to [0, 1].
+    area = 0.5 * step * (area - 2.0 * dark * (samples - 1)) / (light - dark);
+    return half * step - area;
+  }
+  double crossing = std::numeric_limits<double>::infinity();
+  for (int i = 1; i < samples; ++i) {
+    const double at = RisingCrossing(i, half, step, level, profile[i - 1], profile[i]);
+    if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
+  }
+  return crossing;
 }
 
 // The k-th smallest of values[0..count) (k = 0: the smallest), with sign -1 the k-th largest: what
