@@ -55,12 +55,17 @@ struct Line {
 constexpr double kMinReach = 1.2, kMaxReach = 3.0, kReachShareOfBorder = 0.8;
 double Reach(double border) { return std::clamp(kReachShareOfBorder * border, kMinReach, kMaxReach); }
 
-// Distance (px) along an edge from a corner of the given angle (radians) to the first profile of
+// A corner's interior angle, by its cosine and sine (from the edges' dot and cross products: no
+// trigonometric function to call, eight a pass).
+struct Angle {
+  double cos, sin;
+};
+
+// Distance (px) along an edge from a corner of the given angle to the first profile of
 // that reach: far enough that the profile's inner end stays kOtherEdgeClearance from the corner's
 // other edge (at an acute corner of an oblique marker that is several pixels along the edge).
-double Clearance(double corner_angle, double reach) {
-  return std::max(reach + 1.0,
-                  (kOtherEdgeClearance + reach * std::cos(corner_angle)) / std::max(std::sin(corner_angle), 0.2));
+double Clearance(const Angle& corner, double reach) {
+  return std::max(reach + 1.0, (kOtherEdgeClearance + reach * corner.cos) / std::max(corner.sin, 0.2));
 }
 
 // The stretch of an edge `length` px long fitted for the corner at one end (angle `near_angle`; the
@@ -74,7 +79,7 @@ struct Stretch {
   double start, stop;
   bool whole;
 };
-Stretch EdgeStretch(double length, double near_angle, double far_angle, double border) {
+Stretch EdgeStretch(double length, const Angle& near_angle, const Angle& far_angle, double border) {
   const double reach = Reach(border);
   const double start = Clearance(near_angle, reach);
   if (kReachShareOfBorder * border < kMinReach) return {start, std::min(0.5 * length, start + kFitLength), false};
@@ -272,9 +277,13 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     sxy += d.x * d.y;
     syy += d.y * d.y;
   }
-  const double angle = 0.5 * std::atan2(2.0 * sxy, sxx - syy);
+  // The covariance's major eigenvector, (b, lambda - a) or (lambda - c, b) for [[a, b], [b, c]],
+  // whichever is the longer (the other can vanish); a line's direction has no sign to keep.
+  const double half_gap = 0.5 * (sxx - syy), r = std::sqrt(half_gap * half_gap + sxy * sxy);
+  const cv::Point2d direction = half_gap >= 0.0 ? cv::Point2d(half_gap + r, sxy) : cv::Point2d(sxy, r - half_gap);
+  const double norm = cv::norm(direction);
   line.point = mean;
-  line.direction = cv::Point2d(std::cos(angle), std::sin(angle));
+  line.direction = norm > 0.0 ? direction / norm : cv::Point2d(1.0, 0.0);
   return true;
 }
 
@@ -300,10 +309,11 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
   const double sign = area > 0 ? 1.0 : -1.0;
   std::array<cv::Point2d, 4> c;
   for (int i = 0; i < 4; ++i) c[i] = cv::Point2d(corners[i]);
-  std::array<double, 4> angle;
+  std::array<Angle, 4> angle;
   for (int i = 0; i < 4; ++i) {
     const cv::Point2d a = c[(i + 1) % 4] - c[i], b = c[(i + 3) % 4] - c[i];
-    angle[i] = std::acos(std::clamp(a.dot(b) / (cv::norm(a) * cv::norm(b)), -1.0, 1.0));
+    const double lengths = cv::norm(a) * cv::norm(b);
+    angle[i] = {std::clamp(a.dot(b) / lengths, -1.0, 1.0), std::abs(a.cross(b)) / lengths};
   }
   // Lines of edge e (corner e to corner e + 1): near[e] fitted next to corner e, far[e] next to
   // corner e + 1.
@@ -317,8 +327,8 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     // The black border's thickness across the edge next to each end: one cell of the neighbouring
     // edge (perspective makes cells narrower on one pair of sides), times the sine of the corner's
     // angle (a sheared border is thinner across than along).
-    const double border_a = cv::norm(a - c[(e + 3) % 4]) / cells * std::sin(angle[e]);
-    const double border_b = cv::norm(c[(e + 2) % 4] - b) / cells * std::sin(angle[(e + 1) % 4]);
+    const double border_a = cv::norm(a - c[(e + 3) % 4]) / cells * angle[e].sin;
+    const double border_b = cv::norm(c[(e + 2) % 4] - b) / cells * angle[(e + 1) % 4].sin;
     // An edge short enough for one stretch to span it between both corners' clearances is fitted
     // once over that stretch, for both corners: a direction from twice the length of a stretch next
     // to one corner (on 640x480 frames of 50 markers, 16-32 px, the worst corner's error p95 fell
