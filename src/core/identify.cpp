@@ -227,7 +227,7 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
 
 namespace {
 
-// px: markers whose mean side is under this are not tried without cv::aruco's corners (see Decode).
+// px: markers whose mean side is under this keep their own edge fit, settled or not (see Decode).
 constexpr float kSettleMinSide = 20.0f;
 
 // Whether point `p` lies strictly inside the quad (cv::pointPolygonTest > 0), its bounding box
@@ -409,17 +409,20 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       // A full-resolution contour's corners are within the edge fit's reach: where that fit settles
       // (one more pass would move no corner by over kEdgeFitSettledPx) it has reached the fixed point
       // it would reach from cv::aruco's corners too, and tracing cv::aruco's windows around the marker
-      // (CornersAsOpenCv) is not needed. Fewer markers settle the smaller they are, and those that do
-      // not cost a wasted pass, so markers under kSettleMinSide go straight to cv::aruco's corners.
-      // 20 px took the fewest instructions of 16-32 px (callgrind of Detect, 6 frames of 640x480 with
-      // 5 / 20 / 50 markers and 720p with 50: 66.8 / 155.6 / 242.2 / 275.3 M, against 68.1 / 160.0 /
-      // 258.2 / 285.4 M at 32, which suited the edge fit before its crossing level was common).
+      // (CornersAsOpenCv) is not needed. A marker under kSettleMinSide that does not settle takes that
+      // one more pass and keeps its corners: tracing cv::aruco's windows and fitting its edges again
+      // from there cost more than the pass, and gave no better corners (bench_detect, every set: the
+      // same ids; corner medians within 0.001 px, 640x480/50 p95 0.172 -> 0.170 px; callgrind of
+      // Detect on 640x480/50 176.1 -> 168.8 M). Larger markers that do not settle still start from
+      // cv::aruco's corners: on the printed markers of the OpenCV tutorial photos the edge fit does not
+      // settle everywhere, and one more pass from its own start ended up to 0.33 px from where it ends
+      // from cv::aruco's (the full search keeps to 0.1 px; test_fast_path).
       // Otherwise: cornerSubPix lands within a few hundredths of a pixel from any start a pixel or two
       // away; the edge fit keeps its start where it cannot measure an edge, so it gets cv::aruco's.
-      if (config.corner_refinement == CornerRefinement::kEdge && !second && q.level == 0 &&
-          MeanSide(q.corners) >= kSettleMinSide) {
+      if (config.corner_refinement == CornerRefinement::kEdge && !second && q.level == 0) {
         std::array<cv::Point2f, 4> corners = q.corners;
-        if (RefineCornersOnEdgesSettled(grey, corners, cells, kEdgeFitSettledPx)) {
+        if (RefineCornersOnEdgesSettled(grey, corners, cells, kEdgeFitSettledPx,
+                                        MeanSide(q.corners) < kSettleMinSide)) {
           found[i].corners = corners;
           found[i].edges_fitted = true;
           continue;
