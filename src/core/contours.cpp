@@ -199,22 +199,48 @@ bool BorderScan::Next(std::vector<cv::Point>& points) {
   return false;
 }
 
+namespace {
+
+// Measure's two passes, plain loops the compiler vectorises (built for AVX2 too): the bounding box,
+// then the shoelace sum, with each term's products in 32 bits where every coordinate is under 2^15
+// in magnitude (products under 2^30, their difference under 2^31; a border's are, in any image under
+// 32k pixels a side) and in 64 bits otherwise. Integer sums, so the same in any order.
+ARUCOTAG_VECTOR_CLONES cv::Rect BoxOf(const cv::Point* p, int n) {
+  int x0 = p[0].x, x1 = x0, y0 = p[0].y, y1 = y0;
+  for (int i = 1; i < n; ++i) {
+    x0 = std::min(x0, p[i].x);
+    x1 = std::max(x1, p[i].x);
+    y0 = std::min(y0, p[i].y);
+    y1 = std::max(y1, p[i].y);
+  }
+  return cv::Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
+}
+ARUCOTAG_VECTOR_CLONES int64_t TwiceAreaSmall(const cv::Point* p, int n) {
+  int64_t twice = static_cast<int64_t>(p[n - 1].x * p[0].y - p[n - 1].y * p[0].x);
+  for (int i = 1; i < n; ++i) twice += static_cast<int64_t>(p[i - 1].x * p[i].y - p[i - 1].y * p[i].x);
+  return twice;
+}
+int64_t TwiceArea(const cv::Point* p, int n) {
+  int64_t twice = 0;
+  cv::Point prev = p[n - 1];
+  for (int i = 0; i < n; ++i) {
+    twice += static_cast<int64_t>(prev.x) * p[i].y - static_cast<int64_t>(prev.y) * p[i].x;
+    prev = p[i];
+  }
+  return twice;
+}
+
+}  // namespace
+
 Outline Measure(const std::vector<cv::Point>& points) {
   Outline outline;
   if (points.empty()) return outline;
-  int x0 = points[0].x, x1 = x0, y0 = points[0].y, y1 = y0;
-  int64_t twice = 0;
-  cv::Point prev = points.back();
-  for (const cv::Point& p : points) {
-    x0 = std::min(x0, p.x);
-    x1 = std::max(x1, p.x);
-    y0 = std::min(y0, p.y);
-    y1 = std::max(y1, p.y);
-    twice += static_cast<int64_t>(prev.x) * p.y - static_cast<int64_t>(prev.y) * p.x;
-    prev = p;
-  }
-  outline.box = cv::Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
-  outline.twice_area = twice;
+  const int n = static_cast<int>(points.size());
+  outline.box = BoxOf(points.data(), n);
+  const cv::Rect& b = outline.box;
+  constexpr int kSmall = 1 << 15;
+  const bool small = b.x > -kSmall && b.y > -kSmall && b.x + b.width <= kSmall && b.y + b.height <= kSmall;
+  outline.twice_area = small ? TwiceAreaSmall(points.data(), n) : TwiceArea(points.data(), n);
   return outline;
 }
 
