@@ -315,8 +315,21 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   std::vector<char> second_chance(n, 0);
   std::vector<FittedPattern> checked(n);
   std::vector<size_t> read;  // quads read so far
+  // Each quad's bounding box (a decoded quad's corners are its quad's, rotated): OnMarker holds only
+  // where two boxes meet, so the quads are tested against the markers read only there. A pixel of
+  // margin covers the rounding of a centre.
+  std::vector<cv::Vec4f> box(n);
+  for (size_t i = 0; i < n; ++i) {
+    const auto& c = quads[i].corners;
+    box[i] = {std::min({c[0].x, c[1].x, c[2].x, c[3].x}) - 1.0f, std::min({c[0].y, c[1].y, c[2].y, c[3].y}) - 1.0f,
+              std::max({c[0].x, c[1].x, c[2].x, c[3].x}) + 1.0f, std::max({c[0].y, c[1].y, c[2].y, c[3].y}) + 1.0f};
+  }
   const auto on_read_marker = [&](size_t i) {
-    return std::any_of(read.begin(), read.end(), [&](size_t k) { return OnMarker(quads[i], decoded[k]); });
+    const cv::Vec4f& a = box[i];
+    return std::any_of(read.begin(), read.end(), [&](size_t k) {
+      const cv::Vec4f& b = box[k];
+      return a[0] <= b[2] && b[0] <= a[2] && a[1] <= b[3] && b[1] <= a[3] && OnMarker(quads[i], decoded[k]);
+    });
   };
   // Read in waves: the finest level first, and within a level the biggest quads first (area bands
   // of a factor 16, so a marker's cells, under 1/16 of its area, come after it). A quad on a marker
