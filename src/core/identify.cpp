@@ -426,7 +426,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
       // one more pass and keeps its corners: tracing cv::aruco's windows and fitting its edges again
       // from there cost more than the pass, and gave no better corners (bench_detect, every set: the
       // same ids; corner medians within 0.001 px, 640x480/50 p95 0.172 -> 0.170 px; callgrind of
-      // Detect on 640x480/50 176.1 -> 168.8 M). Larger markers that do not settle still start from
+      // Detect on 640x480/50 176.1 -> 168.1 M). Larger markers that do not settle still start from
       // cv::aruco's corners: on the printed markers of the OpenCV tutorial photos the edge fit does not
       // settle everywhere, and one more pass from its own start ended up to 0.33 px from where it ends
       // from cv::aruco's (the full search keeps to 0.1 px; test_fast_path).
