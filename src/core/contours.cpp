@@ -215,20 +215,19 @@ ARUCOTAG_VECTOR_CLONES cv::Rect BoxOf(const cv::Point* p, int n) {
   }
   return cv::Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
 }
-ARUCOTAG_VECTOR_CLONES int64_t TwiceAreaSmall(const cv::Point* p, int n) {
-  int64_t twice = static_cast<int64_t>(p[n - 1].x * p[0].y - p[n - 1].y * p[0].x);
-  for (int i = 1; i < n; ++i) twice += static_cast<int64_t>(p[i - 1].x * p[i].y - p[i - 1].y * p[i].x);
+// The shoelace sum with each term's products in T (the closing term first, so that the loop's
+// indices are affine and it vectorises).
+template <class T>
+ARUCOTAG_INLINE int64_t TwiceAreaOf(const cv::Point* p, int n) {
+  const auto term = [p](int a, int b) {
+    return static_cast<int64_t>(static_cast<T>(p[a].x) * p[b].y - static_cast<T>(p[a].y) * p[b].x);
+  };
+  int64_t twice = term(n - 1, 0);
+  for (int i = 1; i < n; ++i) twice += term(i - 1, i);
   return twice;
 }
-int64_t TwiceArea(const cv::Point* p, int n) {
-  int64_t twice = 0;
-  cv::Point prev = p[n - 1];
-  for (int i = 0; i < n; ++i) {
-    twice += static_cast<int64_t>(prev.x) * p[i].y - static_cast<int64_t>(prev.y) * p[i].x;
-    prev = p[i];
-  }
-  return twice;
-}
+ARUCOTAG_VECTOR_CLONES int64_t TwiceArea(const cv::Point* p, int n, int32_t) { return TwiceAreaOf<int32_t>(p, n); }
+int64_t TwiceArea(const cv::Point* p, int n, int64_t) { return TwiceAreaOf<int64_t>(p, n); }
 
 }  // namespace
 
@@ -240,7 +239,7 @@ Outline Measure(const std::vector<cv::Point>& points) {
   const cv::Rect& b = outline.box;
   constexpr int kSmall = 1 << 15;
   const bool small = b.x > -kSmall && b.y > -kSmall && b.x + b.width <= kSmall && b.y + b.height <= kSmall;
-  outline.twice_area = small ? TwiceAreaSmall(points.data(), n) : TwiceArea(points.data(), n);
+  outline.twice_area = small ? TwiceArea(points.data(), n, int32_t()) : TwiceArea(points.data(), n, int64_t());
   return outline;
 }
 
