@@ -17,7 +17,8 @@ int RefineCornersOnEdgesOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& co
 
 /// RefineCornersOnEdges, true when it measured all four corners in its last pass and that pass, or
 /// else one more, moved none of them by over `settled` px: the fit has reached its fixed point, which
-/// does not depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns.
+/// does not depend on where it started. `corners` are RefineCornersOnEdges's whatever it returns,
+/// except that its passes end early once a pass on all profiles has settled.
 /// With `keep_check_pass`, a fit that has not settled keeps that one more pass (made from its passes'
 /// corners whatever they measured) and is true when that pass measured all four corners.
 bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
