@@ -234,10 +234,23 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
         const cv::Point2d dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
         int sample_cells[kCoverageSamples * kCoverageSamples];
         CoverageSampleCells(g[0], dx, dy, dxy, n, sample_cells);
-        for (const int k : sample_cells) {
+        // Neighbouring samples mostly share a cell: each run of one cell is added at once (sixteenths,
+        // exact in a double, so the same weights), rather than a read and a write of its weight per
+        // sample, each waiting on the last.
+        const auto add = [&](int k, int run) {
           if (weight[k] == 0.0) touched[touches++] = k;
-          weight[k] += 1.0 / (kCoverageSamples * kCoverageSamples);
+          weight[k] += run * (1.0 / (kCoverageSamples * kCoverageSamples));
+        };
+        int run = 1;
+        for (int i = 1; i < kCoverageSamples * kCoverageSamples; ++i) {
+          if (sample_cells[i] == sample_cells[i - 1]) {
+            ++run;
+          } else {
+            add(sample_cells[i - 1], run);
+            run = 1;
+          }
         }
+        add(sample_cells[kCoverageSamples * kCoverageSamples - 1], run);
       }
       const double value = grey.at<uchar>(y, x);
       const int lowest = *std::min_element(touched, touched + touches);
