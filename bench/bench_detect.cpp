@@ -384,7 +384,7 @@ Lineup MakeLineup(const FrameSet& set, const std::vector<std::string>& wanted) {
              pose_us->clear();
              cv::Mat grey;
              PreprocessFrame(f.bgr, grey);
-             std::vector<ArucoTag> tags = Detect(grey, *pipeline);
+             std::vector<ArucoTag> tags = Detect(grey, *pipeline, camera);  // as the nodelet: through the lens
              for (auto& tag : tags) {
                const double p0 = WallMs();
                EstimatePoseFromPNP(camera, tag);

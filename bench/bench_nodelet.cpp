@@ -156,7 +156,7 @@ Stream StreamAt30Hz(const FrameSet& set, ros::Publisher& image_pub, ros::Publish
     const Clock::time_point c0 = Clock::now();
     cv::Mat grey;
     PreprocessFrame(f.bgr, grey);
-    std::vector<ArucoTag> tags = Detect(grey, core);
+    std::vector<ArucoTag> tags = Detect(grey, core, set.camera);
     for (auto& tag : tags) EstimatePoseFromPNP(set.camera, tag);
     stream.core.push_back(std::chrono::duration<double, std::milli>(Clock::now() - c0).count());
   }
@@ -239,7 +239,7 @@ int Main(int argc, char** argv) {
       const Clock::time_point c0 = Clock::now();
       cv::Mat grey;
       PreprocessFrame(f.bgr, grey);
-      std::vector<ArucoTag> tags = Detect(grey, core);
+      std::vector<ArucoTag> tags = Detect(grey, core, set.camera);
       for (auto& tag : tags) EstimatePoseFromPNP(set.camera, tag);
       return std::chrono::duration<double, std::milli>(Clock::now() - c0).count();
     };

@@ -190,7 +190,7 @@ int Main(int argc, char** argv) {
 
     cv::Mat grey;
     PreprocessFrame(image, grey);
-    std::vector<ArucoTag> tags = Detect(grey, detector);
+    std::vector<ArucoTag> tags = Detect(grey, detector, model);
     const auto found = std::find_if(tags.begin(), tags.end(), [&](const ArucoTag& t) { return t.id == truth.id; });
     if (found == tags.end()) {
       ++missed;

@@ -12,6 +12,8 @@
 
 namespace arucotag {
 
+struct CameraModel;  // pose.hpp
+
 /// How corner positions are refined after a candidate square is found. kEdge (ours, the default)
 /// fits lines to sub-pixel edge points near each corner (RefineCornersOnEdges); the others are
 /// cv::aruco's. On exactly rendered markers kEdge lands within a few hundredths of a pixel where
@@ -146,7 +148,7 @@ class Detector {
   TrackingStats tracking_stats() const;
 
  private:
-  friend std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector);
+  friend std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, const CameraModel& lens);
   struct Tracking;  // the tracked markers of the last frame, behind a mutex (detector.cpp)
 
   DetectorConfig config_;
@@ -164,5 +166,22 @@ class Detector {
 /// wider than the frame, say). With config().fast_path and tracking (the defaults) it uses and updates the
 /// Detector's tracked markers (see DetectorConfig::tracking); safe to call from several threads.
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector);
+
+/// Detect for a frame taken through `lens` without rectification (a raw image and its camera
+/// model). The whole-pattern fit (DetectorConfig::pattern_fit_max_side) models a marker as a
+/// homography of its grid, whose edges are straight; a lens that bends a marker's edges by
+/// kMaxPatternFitBend px or more moves its fitted corners by about twice that, where the edge fit,
+/// fitted next to each corner, follows the bend. Such markers keep the edge fit's corners, and do
+/// not count against pattern_fit_max_markers. A lens without distortion bends nothing: the same
+/// result as Detect(frame, detector). Throws arucotag::Error as Detect does, and on an invalid
+/// lens (CameraModel::Validate).
+std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, const CameraModel& lens);
+
+/// px: how far a lens may bend a marker's edge (the distance of the edge's middle from the chord
+/// between its corners) for the whole-pattern fit to run on it. Measured on 640x480 renders through
+/// radial (k1 0 to -0.2, 90 degrees) and fisheye lenses, markers of 12-56 px, 4.2 k markers: the
+/// pattern fit's worst corner is off by about twice the bend, and does worse than the edge fit on
+/// half the markers from 0.04 px on.
+inline constexpr double kMaxPatternFitBend = 0.04;
 
 }  // namespace arucotag

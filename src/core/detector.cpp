@@ -1,8 +1,10 @@
 #include <arucotag/detector.hpp>
+#include <arucotag/pose.hpp>
 #include <arucotag/refine.hpp>
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include <opencv2/imgproc.hpp>
@@ -20,6 +22,42 @@ namespace arucotag {
 struct Detector::Tracking : internal::TrackingState {};
 
 namespace {
+
+// Whether `lens` bends straight lines: any distortion coefficient not zero, or a fisheye (r = f
+// theta even with all its coefficients zero).
+bool Bends(const CameraModel& lens) {
+  return lens.distortion_model == DistortionModel::kEquidistant ||
+         std::any_of(lens.distortion.begin(), lens.distortion.end(), [](double k) { return k != 0.0; });
+}
+
+// How far (px) `lens` bends the marker's edges: the largest distance of an edge's middle from the
+// chord between its corners, the middle being where the straight line between the corners' rays
+// (undistorted) projects halfway. The chords' ends are the corners projected back too, so that
+// undistortion's round-off leaves the chord and the middle alike. Infinity where OpenCV cannot
+// undistort a corner (a fisheye corner 90 degrees off axis).
+double EdgeBend(const CameraModel& lens, const std::array<cv::Point2f, 4>& corners) {
+  const std::vector<cv::Point2d> rays = lens.Normalize({corners.begin(), corners.end()});
+  std::vector<cv::Point3d> points;
+  for (int i = 0; i < 4; ++i) points.emplace_back(rays[i].x, rays[i].y, 1.0);
+  for (int i = 0; i < 4; ++i) {
+    const cv::Point2d middle = 0.5 * (rays[i] + rays[(i + 1) % 4]);
+    points.emplace_back(middle.x, middle.y, 1.0);
+  }
+  for (const auto& p : points) {
+    if (!std::isfinite(p.x) || !std::isfinite(p.y) || std::abs(p.x) > 1e5 || std::abs(p.y) > 1e5) {
+      return std::numeric_limits<double>::infinity();
+    }
+  }
+  const std::vector<cv::Point2d> image = lens.Project(points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0));
+  double bend = 0.0;
+  for (int i = 0; i < 4; ++i) {
+    const cv::Point2d a = image[i], chord = image[(i + 1) % 4] - a;
+    const double length = cv::norm(chord);
+    if (!(length > 0.0)) return std::numeric_limits<double>::infinity();
+    bend = std::max(bend, std::abs(chord.cross(image[4 + i] - a)) / length);
+  }
+  return bend;
+}
 
 // Index = cv::aruco::PREDEFINED_DICTIONARY_NAME value.
 const std::vector<std::string> kDictionaryNames = {
@@ -273,6 +311,13 @@ cv::Mat MarkerCells(const cv::aruco::Dictionary& dictionary, int id, int border_
 }
 
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
+  static const CameraModel kNoLens;  // no distortion: bends nothing
+  return Detect(frame, detector, kNoLens);
+}
+
+std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, const CameraModel& lens) {
+  const bool bending = Bends(lens);
+  if (bending) lens.Validate();
   if (frame.empty()) {
     throw Error("Detect: empty image");
   }
@@ -378,8 +423,14 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
       // is the fit this stage would run, from the decoder's corners instead of the edge fit's. It is
       // free, so it does not count against pattern_fit_max_markers.
       std::vector<char> fitted(tags.size(), 0);
+      // Whether the lens leaves marker i's edges straight enough for a pattern fit (asked only of
+      // markers that would get one: two OpenCV projections each).
+      const auto straight = [&](size_t i) { return !bending || EdgeBend(lens, tags[i].corners) < kMaxPatternFitBend; };
       for (size_t i = 0; i < tags.size(); ++i) {
-        if (checked[i].blur < 0.0f || !(internal::MeanSide(tags[i].corners) < config.pattern_fit_max_side)) continue;
+        if (checked[i].blur < 0.0f || !(internal::MeanSide(tags[i].corners) < config.pattern_fit_max_side) ||
+            !straight(i)) {
+          continue;
+        }
         fits[i].blur = checked[i].blur;
         for (int c = 0; c < 4; ++c) fits[i].offset[c] = checked[i].corners[c] - tags[i].corners[c];
         tags[i].corners = checked[i].corners;
@@ -392,9 +443,14 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector) {
         if (!fitted[i] && side < config.pattern_fit_max_side) small.emplace_back(side, i);
       }
       std::sort(small.begin(), small.end());
-      if (config.pattern_fit_max_markers > 0 && small.size() > static_cast<size_t>(config.pattern_fit_max_markers)) {
-        small.resize(static_cast<size_t>(config.pattern_fit_max_markers));
+      // The smallest the lens leaves straight, up to pattern_fit_max_markers of them.
+      const size_t most = config.pattern_fit_max_markers > 0 ? static_cast<size_t>(config.pattern_fit_max_markers)
+                                                             : small.size();
+      size_t kept = 0;
+      for (size_t k = 0; k < small.size() && kept < most; ++k) {
+        if (straight(small[k].second)) small[kept++] = small[k];
       }
+      small.resize(kept);
       // A carried marker left out of the pattern fit this frame (grown past pattern_fit_max_side, or
       // past the count) takes its edge fit's second pass.
       for (const auto& entry : small) fitted[entry.second] = 1;

@@ -498,13 +498,17 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
 
   DetectorImage input;
   std::vector<ArucoTag> tags;
+  std::optional<CameraModel> camera;
   try {
     input = DetectorImageFrom(image);
     PreprocessOptions options = params_.preprocess;
     options.format = input.format;
     cv::Mat grey;
     PreprocessFrame(input.pixels, grey, options);
-    tags = Detect(grey, *detector_);
+    // A raw image's lens bends marker edges; Detect then leaves the markers it bends to the edge fit
+    // (the pattern fit's model has straight edges). A rectified image's model has no distortion.
+    camera = CameraFor(header.stamp, input.pixels.size());
+    tags = camera ? Detect(grey, *detector_, *camera) : Detect(grey, *detector_);
   } catch (const std::exception& e) {  // arucotag::Error, cv::Exception
     ++counts_.skipped;
     Fail("image " + image->encoding, std::string("frame skipped: ") + e.what());
@@ -528,7 +532,6 @@ void DetectorNodelet::Process(const ImageConstPtr& image) {
   }
 
   const cv::Size size = input.pixels.size();
-  const std::optional<CameraModel> camera = CameraFor(header.stamp, size);
   const Cloud& points = CloudFor(params_.use_point_cloud ? NearestCloud(header.stamp) : nullptr, header, size);
   if (params_.use_point_cloud) ++(points.empty() ? counts_.without_cloud : counts_.with_cloud);
   for (auto& tag : tags) Measure(tag, camera, points);

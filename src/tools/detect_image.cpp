@@ -112,7 +112,9 @@ int main(int argc, char** argv) {
       }
       cv::Mat grey;
       arucotag::PreprocessFrame(image, grey, preprocess);
-      std::vector<arucotag::ArucoTag> tags = arucotag::Detect(grey, detector);
+      // With a camera the image is taken as raw (unrectified): markers its lens bends keep the edge fit.
+      std::vector<arucotag::ArucoTag> tags =
+          camera ? arucotag::Detect(grey, detector, *camera) : arucotag::Detect(grey, detector);
       std::printf("%s: %zu tag(s)\n", path.c_str(), tags.size());
       for (auto& tag : tags) {
         std::printf("  id %d corners", tag.id);

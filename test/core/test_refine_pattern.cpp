@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <functional>
 #include <limits>
 #include <thread>
 #include <utility>
@@ -246,6 +247,134 @@ TEST(PatternFit, CappedPerFrameSmallestFirst) {
   }
   capped.pattern_fit_max_markers = -1;
   EXPECT_THROW(Detector{capped}, Error);
+}
+
+// Frames through a wide lens (640x480, 90 degrees, k1 -0.1), `frames` of them with up to eight
+// markers of `min_px`-`max_px` each, tilted up to 30 degrees, anywhere in the frame (the lens bends
+// edges most towards the corners), and their true corners.
+struct LensScene {
+  sim::Camera camera;
+  std::vector<cv::Mat> greys;
+  std::vector<std::vector<sim::Marker>> markers;
+};
+LensScene RenderThroughLens(double k1, double min_px, double max_px, int frames) {
+  LensScene scene;
+  scene.camera = sim::MakeCamera({640, 480}, 90.0);
+  if (k1 != 0.0) scene.camera.dist = {k1, 0.0, 0.0, 0.0, 0.0};
+  cv::RNG rng(17);
+  for (int f = 0; f < frames; ++f) {
+    std::vector<sim::Marker> markers;
+    std::vector<cv::Rect2f> boxes;
+    for (int k = 0; k < 8; ++k) {
+      for (int attempt = 0; attempt < 300; ++attempt) {
+        const double range = scene.camera.K(0, 0) * 0.15 / rng.uniform(min_px, max_px);
+        cv::Vec3d ray = scene.camera.K.inv() * cv::Vec3d(rng.uniform(0.0, 640.0), rng.uniform(0.0, 480.0), 1.0);
+        ray /= cv::norm(ray);
+        const double axis = rng.uniform(0.0, 2.0 * M_PI), tilt = rng.uniform(0.0, 30.0);
+        const sim::Marker m = sim::FacingCamera(static_cast<int>(markers.size()), 0.15, ray * range,
+                                                tilt * std::cos(axis), tilt * std::sin(axis), rng.uniform(0.0, 360.0));
+        const auto q = sim::ProjectCorners(scene.camera, m);
+        cv::Rect2f box(cv::boundingRect(std::vector<cv::Point2f>(q.begin(), q.end())));
+        box = cv::Rect2f(box.x - 0.4f * box.width, box.y - 0.4f * box.height, 1.8f * box.width, 1.8f * box.height);
+        if (box.x < 3 || box.y < 3 || box.br().x > 636 || box.br().y > 476) continue;
+        if (std::any_of(boxes.begin(), boxes.end(), [&](const cv::Rect2f& b) { return (b & box).area() > 0; })) continue;
+        markers.push_back(m);
+        boxes.push_back(box);
+        break;
+      }
+    }
+    sim::RenderOptions options;
+    options.seed = static_cast<unsigned>(f + 1);
+    cv::Mat grey;
+    PreprocessFrame(sim::RenderScene(scene.camera, markers, options), grey);
+    scene.greys.push_back(grey);
+    scene.markers.push_back(markers);
+  }
+  return scene;
+}
+
+// Each found marker's worst corner error over the scene's frames (markers not found are left out; the
+// test compares detections of the same markers).
+std::vector<double> WorstCornerErrors(const LensScene& scene, const std::function<std::vector<ArucoTag>(const cv::Mat&)>& detect) {
+  std::vector<double> errors;
+  for (size_t f = 0; f < scene.greys.size(); ++f) {
+    for (const ArucoTag& tag : detect(scene.greys[f])) {
+      errors.push_back(MaxError(tag.corners, sim::ProjectCorners(scene.camera, scene.markers[f][static_cast<size_t>(tag.id)])));
+    }
+  }
+  std::sort(errors.begin(), errors.end());
+  return errors;
+}
+
+double Quantile(const std::vector<double>& sorted, double q) {
+  return sorted.empty() ? 0.0 : sorted[static_cast<size_t>(q * (sorted.size() - 1))];
+}
+
+// A raw frame through a lens: the pattern fit's straight-edged model moves the corners of markers whose
+// edges the lens bends (about twice the bend), so given the lens Detect leaves those to the edge fit.
+TEST(PatternFit, MarkersTheLensBendsKeepTheEdgeFit) {
+  const LensScene scene = RenderThroughLens(-0.1, 40.0, 56.0, 8);
+  const CameraModel lens = CameraModel::FromIntrinsics(scene.camera.K, scene.camera.dist);
+  DetectorConfig config;
+  config.tracking = false;
+  const Detector detector(config);
+  DetectorConfig edge_config = config;
+  edge_config.pattern_fit_max_side = 0;
+  const Detector edge_only(edge_config);
+  const auto blind = WorstCornerErrors(scene, [&](const cv::Mat& g) { return Detect(g, detector); });
+  const auto through = WorstCornerErrors(scene, [&](const cv::Mat& g) { return Detect(g, detector, lens); });
+  const auto edges = WorstCornerErrors(scene, [&](const cv::Mat& g) { return Detect(g, edge_only); });
+  ASSERT_GE(blind.size(), 50u);
+  ASSERT_EQ(through.size(), blind.size());
+  ASSERT_EQ(edges.size(), blind.size());
+  std::printf("  worst corner p50 / p95 (px): lens unknown %.3f / %.3f, lens given %.3f / %.3f, edge fit alone %.3f / %.3f\n",
+              Quantile(blind, 0.5), Quantile(blind, 0.95), Quantile(through, 0.5), Quantile(through, 0.95),
+              Quantile(edges, 0.5), Quantile(edges, 0.95));
+  EXPECT_LT(Quantile(through, 0.95), 0.5 * Quantile(blind, 0.95));
+  EXPECT_LE(Quantile(through, 0.95), Quantile(edges, 0.95) + 0.01);
+  EXPECT_LT(Quantile(through, 0.5), Quantile(blind, 0.5));
+}
+
+// Where the lens leaves the edges straight (no distortion, or small markers near the middle) the
+// pattern fit runs as without a lens: the same corners.
+TEST(PatternFit, StraightLensChangesNothing) {
+  const LensScene scene = RenderThroughLens(0.0, 14.0, 50.0, 3);
+  DetectorConfig config;
+  config.tracking = false;
+  const Detector detector(config);
+  CameraModel lens = CameraModel::FromIntrinsics(scene.camera.K, {});
+  for (size_t f = 0; f < scene.greys.size(); ++f) {
+    const auto blind = Detect(scene.greys[f], detector);
+    for (const auto& distortion : {std::vector<double>{}, std::vector<double>(5, 0.0)}) {
+      lens.distortion = distortion;
+      const auto through = Detect(scene.greys[f], detector, lens);
+      ASSERT_EQ(through.size(), blind.size());
+      for (size_t i = 0; i < blind.size(); ++i) {
+        EXPECT_EQ(through[i].id, blind[i].id);
+        for (int c = 0; c < 4; ++c) EXPECT_EQ(through[i].corners[c], blind[i].corners[c]) << "frame " << f << " tag " << i;
+      }
+    }
+  }
+  // A lens that does bend, on markers small enough that it bends them under the limit: still fitted.
+  const LensScene small = RenderThroughLens(-0.1, 14.0, 18.0, 2);
+  const CameraModel wide = CameraModel::FromIntrinsics(small.camera.K, small.camera.dist);
+  DetectorConfig edge_config = config;
+  edge_config.pattern_fit_max_side = 0;
+  int fitted = 0, found = 0;
+  for (size_t f = 0; f < small.greys.size(); ++f) {
+    const auto through = Detect(small.greys[f], detector, wide);
+    const auto edges = Detect(small.greys[f], Detector(edge_config));
+    for (const auto& tag : through) {
+      ++found;
+      for (const auto& edge : edges) fitted += edge.id == tag.id && MaxError(edge.corners, tag.corners) > 1e-3;
+    }
+  }
+  EXPECT_GE(found, 10);
+  EXPECT_GE(fitted, found * 3 / 4) << "small markers should keep the pattern fit";
+  // An invalid lens is refused like EstimatePoseFromPNP refuses it.
+  CameraModel broken = wide;
+  broken.K(0, 0) = -1.0;
+  EXPECT_THROW(Detect(small.greys[0], detector, broken), Error);
 }
 
 // Large markers are fitted on a lattice of at most about 6000 pixels, so the fit's cost stops growing
