@@ -52,12 +52,13 @@ cv::Mat Bin(const cv::Mat& image, int b) {
   return binned;
 }
 
-std::vector<ArucoTag> DetectIn(const cv::Mat& image) {
+// Through the camera model, as the nodelet detects: markers the lens bends keep the edge fit.
+std::vector<ArucoTag> DetectIn(const cv::Mat& image, const CameraModel& camera) {
   DetectorConfig config;
   config.default_side_length = kSide;
   cv::Mat grey;
   PreprocessFrame(image, grey);
-  return Detect(grey, Detector(config));
+  return Detect(grey, Detector(config), camera);
 }
 
 double RotationError(const cv::Vec3d& a, const cv::Vec3d& b) {
@@ -95,7 +96,7 @@ int ExpectFullResolutionPoses(const cv::Mat& image, const sensor_msgs::CameraInf
                               double max_rms = 0.1) {
   const CameraModel camera = CameraModelFromInfo(info, rectified, image.size());
   int checked = 0;
-  for (ArucoTag tag : DetectIn(image)) {
+  for (ArucoTag tag : DetectIn(image, camera)) {
     const sim::Marker& marker = truth.at(tag.id);
     EXPECT_TRUE(EstimatePoseFromPNP(camera, tag)) << what << " id " << tag.id;
     const double range = cv::norm(marker.tvec);
@@ -137,7 +138,7 @@ TEST(CameraModelFromInfo, BinnedPixelCentresMapToTheSensor) {
   geometry.fromCameraInfo(info);
   cv::Point2d mean_error, geometry_mean_error;
   int corners = 0;
-  for (const ArucoTag& tag : DetectIn(half)) {
+  for (const ArucoTag& tag : DetectIn(half, camera)) {
     const auto truth = sim::ProjectCorners(full, markers.at(tag.id));
     for (int i = 0; i < 4; ++i, ++corners) {
       mean_error += camera.pixels.ToSensor(tag.corners[i]) - cv::Point2d(truth[i]);
@@ -204,10 +205,11 @@ TEST(CameraModelFromInfo, FisheyeInfo) {
   ASSERT_EQ(info.distortion_model, "equidistant");
   EXPECT_EQ(ExpectFullResolutionPoses(image, info, false, markers, "fisheye"), 5);
   info.binning_x = info.binning_y = 2;
-  // Binned, the off-axis markers are 40 px squares whose edges the lens bends: the detector's
-  // straight-edge corners sit up to 0.7 px towards the image centre (0.1 px at full size), which
-  // the reprojection error shows and the pose tolerates.
-  EXPECT_EQ(ExpectFullResolutionPoses(Bin(image, 2), info, false, markers, "fisheye binned", 0.3), 5);
+  // Binned, the off-axis markers are 40 px squares whose edges the lens bends. The whole-pattern
+  // fit's straight-edged model put their corners up to 0.7 px towards the image centre (reprojection
+  // RMS 0.12-0.24 px); through the lens model Detect leaves them to the edge fit, which follows the
+  // bend (RMS at most 0.015 px).
+  EXPECT_EQ(ExpectFullResolutionPoses(Bin(image, 2), info, false, markers, "fisheye binned"), 5);
 }
 
 TEST(CameraModelFromInfo, InfosAreCheckedAndProblemsNamed) {
