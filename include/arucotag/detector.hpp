@@ -86,7 +86,8 @@ struct DetectorConfig {
   /// With corner_refinement kEdge: markers whose mean side is shorter than this (px) are refined
   /// further by fitting their whole decoded pattern (RefineCornersOnPattern), 0.25-0.8 ms each. Below
   /// about 50 px the border alone leaves corners tenths of a pixel off and the pose flips; the fit
-  /// brings them to about 0.02 px. 0 turns it off.
+  /// brings them to about 0.02 px. 0 turns it off. The fit's model has straight edges: on a raw
+  /// frame, Detect(frame, detector, lens) leaves the markers the lens bends to the edge fit.
   int pattern_fit_max_side = 56;
   /// At most this many markers per frame get the pattern fit, the smallest first (they need it
   /// most): bounds the time a crowded frame (a calibration board, a wall of markers) adds. 0 = no
