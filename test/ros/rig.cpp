@@ -125,8 +125,20 @@ sensor_msgs::CameraInfoPtr Rig::InfoMessage(const sim::Camera& camera, const ros
   info->header.frame_id = kOpticalFrame;
   info->width = camera.size.width;
   info->height = camera.size.height;
-  info->distortion_model = "plumb_bob";
-  info->D.assign(5, 0.0);
+  // The render's own lens: plumb_bob (k1 k2 p1 p2 k3, missing ones zero), rational_polynomial past
+  // five coefficients, equidistant for a fisheye.
+  if (camera.fisheye) {
+    info->distortion_model = "equidistant";
+    info->D = camera.dist;
+    info->D.resize(4, 0.0);
+  } else if (camera.dist.size() > 5) {
+    info->distortion_model = "rational_polynomial";
+    info->D = camera.dist;
+  } else {
+    info->distortion_model = "plumb_bob";
+    info->D = camera.dist;
+    info->D.resize(5, 0.0);
+  }
   for (int i = 0; i < 9; ++i) info->K[i] = camera.K.val[i];
   info->R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
   for (int r = 0; r < 3; ++r)

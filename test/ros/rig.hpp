@@ -111,6 +111,7 @@ class Rig {
   ros::Publisher& cloud_pub() { return cloud_pub_; }
 
   static sensor_msgs::ImagePtr ImageMessage(const cv::Mat& bgr, const ros::Time& stamp);
+  /// The camera's K and lens (its distortion coefficients and model), P = K.
   static sensor_msgs::CameraInfoPtr InfoMessage(const sim::Camera& camera, const ros::Time& stamp);
   /// Organized XYZ + padding cloud (point_step 16, like drivers' XYZRGB), moved by R, t when given.
   static sensor_msgs::PointCloud2Ptr CloudMessage(const cv::Mat& cloud, const ros::Time& stamp, const std::string& frame,
