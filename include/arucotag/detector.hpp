@@ -174,8 +174,8 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector);
 /// kMaxPatternFitBend px or more moves its fitted corners by about twice that, where the edge fit,
 /// fitted next to each corner, follows the bend. Such markers keep the edge fit's corners, and do
 /// not count against pattern_fit_max_markers. A lens without distortion bends nothing: the same
-/// result as Detect(frame, detector). Throws arucotag::Error as Detect does, and on an invalid
-/// lens (CameraModel::Validate).
+/// result as Detect(frame, detector) (such a lens is not looked at further). Throws arucotag::Error
+/// as Detect does, and where a lens with distortion fails CameraModel::Validate.
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, const CameraModel& lens);
 
 /// px: how far a lens may bend a marker's edge (the distance of the edge's middle from the chord
