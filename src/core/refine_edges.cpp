@@ -435,8 +435,7 @@ bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>
   if (moved == 4 && last_move <= settled) return true;
   std::array<cv::Point2f, 4> next = corners;
   if (RefineOnce(grey, next, cells) != 4) return false;
-  bool within = moved == 4;
-  for (int i = 0; i < 4; ++i) within = within && cv::norm(next[i] - corners[i]) <= settled;
+  const bool within = moved == 4 && LargestMove(corners, next) <= settled;
   if (!within && keep_check_pass) corners = next;
   return within || keep_check_pass;
 }

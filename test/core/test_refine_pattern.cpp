@@ -267,16 +267,12 @@ LensScene RenderThroughLens(double k1, double min_px, double max_px, int frames)
     std::vector<cv::Rect2f> boxes;
     for (int k = 0; k < 8; ++k) {
       for (int attempt = 0; attempt < 300; ++attempt) {
-        const double range = scene.camera.K(0, 0) * 0.15 / rng.uniform(min_px, max_px);
-        cv::Vec3d ray = scene.camera.K.inv() * cv::Vec3d(rng.uniform(0.0, 640.0), rng.uniform(0.0, 480.0), 1.0);
-        ray /= cv::norm(ray);
-        const double axis = rng.uniform(0.0, 2.0 * M_PI), tilt = rng.uniform(0.0, 30.0);
-        const sim::Marker m = sim::FacingCamera(static_cast<int>(markers.size()), 0.15, ray * range,
-                                                tilt * std::cos(axis), tilt * std::sin(axis), rng.uniform(0.0, 360.0));
+        const double fx_side = scene.camera.K(0, 0) * 0.15;  // range (m) times side (px)
+        const sim::Marker m = sim::RandomMarker(rng, scene.camera, static_cast<int>(markers.size()), 0.15,
+                                                fx_side / max_px, fx_side / min_px, 30.0);
         const auto q = sim::ProjectCorners(scene.camera, m);
         cv::Rect2f box(cv::boundingRect(std::vector<cv::Point2f>(q.begin(), q.end())));
         box = cv::Rect2f(box.x - 0.4f * box.width, box.y - 0.4f * box.height, 1.8f * box.width, 1.8f * box.height);
-        if (box.x < 3 || box.y < 3 || box.br().x > 636 || box.br().y > 476) continue;
         if (std::any_of(boxes.begin(), boxes.end(), [&](const cv::Rect2f& b) { return (b & box).area() > 0; })) continue;
         markers.push_back(m);
         boxes.push_back(box);
