@@ -188,9 +188,9 @@ bool BorderScan::Next(std::vector<cv::Point>& points) {
     uchar* row = data_ + y_ * step_;
     x_ = NextStart(row, x_, end);
     if (x_ < end) {
-      const bool hole = row[x_] == kBackground;
-      const int x = x_ - (hole ? 1 : 0);
-      Follow(row + x, static_cast<ptrdiff_t>(step_), cv::Point(x - 1, y_ - 1), hole, points);
+      hole_ = row[x_] == kBackground;
+      const int x = x_ - (hole_ ? 1 : 0);
+      Follow(row + x, static_cast<ptrdiff_t>(step_), cv::Point(x - 1, y_ - 1), hole_, points);
       ++x_;
       return true;
     }

@@ -24,12 +24,15 @@ class BorderScan {
   /// The next border in raster order: false when there is none left. `points` gets every pixel of
   /// it (CHAIN_APPROX_NONE).
   bool Next(std::vector<cv::Point>& points);
+  /// Whether the border Next gave last is a hole's (foreground round background).
+  bool hole() const { return hole_; }
 
  private:
   uchar* data_;
   size_t step_;
   int rows_, cols_;
   int x_ = 1, y_ = 1;
+  bool hole_ = false;
 };
 
 /// A closed polygon's bounding box and twice its signed area (the shoelace sum), exactly: what
