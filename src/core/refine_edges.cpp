@@ -335,7 +335,16 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     // from 1.3 to 0.6 px). Longer edges are fitted next to each corner over kFitLength: lens
     // distortion bends long edges.
     const double border = std::min(border_a, border_b);
-    const Stretch both = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border);
+    Stretch both = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border);
+    // A nearing pass (fewer profiles; two full passes follow) fits every edge once, between both
+    // corners' clearances: it only has to bring the corners near, and a line over the whole edge does
+    // (bench_detect, every set: the same ids; 640x480/50 corner p95 0.170 -> 0.168 px, medians within
+    // 0.0002 px; callgrind of Detect on 640x480/50 146.0 -> 143.5 M; the one-off lens harness of stop
+    // 43, k1 -0.3 and a 120-degree fisheye, edge fit alone: medians within 0.0006 px).
+    if (profile_count < kProfilesPerEdge && !both.whole && kReachShareOfBorder * border >= kMinReach) {
+      const double reach = Reach(border);
+      both = {Clearance(angle[e], reach), length - Clearance(angle[(e + 1) % 4], reach), true};
+    }
     if (both.whole) {
       near_ok[e] = far_ok[e] = FitEdge(grey, a, b, outward, border, both.start, both.stop, profile_count, near[e]);
       far[e] = near[e];
