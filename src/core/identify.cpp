@@ -107,8 +107,11 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   if (size > kMaxUnwarpedSide) return false;  // a configuration Detector refuses
   // Canonical pixel (x, y) is (u, v) = (x, y) / (size - 1) of the unit square.
   const cv::Matx33d h = SquareToQuad(corners) * cv::Matx33d(1.0 / (size - 1), 0, 0, 0, 1.0 / (size - 1), 0, 0, 0, 1);
-  thread_local std::vector<uchar> canonical;
-  canonical.resize(static_cast<size_t>(size) * size);
+  thread_local std::vector<uchar> canonical_buffer;
+  canonical_buffer.resize(static_cast<size_t>(size) * size);
+  // Through a plain pointer: each use of a thread_local in a shared library is a call to
+  // __tls_get_addr, which the compiler repeated row by row.
+  uchar* const canonical = canonical_buffer.data();
   const uchar* pixels = grey.data;
   // The histogram for Otsu's threshold is counted as the pixels are read, into four histograms by
   // column: neighbouring pixels often share a level, and one histogram made each count wait for the
@@ -150,7 +153,7 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
     // OpenCV's getThreshVal_Otsu_8u, over the grey levels that occur: at an empty level q1 and mu1
     // keep their values (up to round-off), so its sigma only repeats the last level's, and a
     // threshold moved onto an empty level splits the pixels as the level before it does.
-    const double scale = 1.0 / canonical.size();
+    const double scale = 1.0 / canonical_buffer.size();
     // The levels' sum in integers (a loop that vectorises): the same exact value as OpenCV's sum of
     // i * histogram[i] in double, every partial sum an integer under 2^53.
     int64_t level_sum = 0;
