@@ -17,6 +17,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <mutex>
 #include <numeric>
 #include <utility>
 
@@ -258,6 +259,40 @@ bool OnMarker(const Quad& q, const Quad& marker) {
                               : StrictlyInside(q.corners, Centre(marker.corners));
 }
 
+// The second-chance decoder's results on one frame, by the contour it was given: neighbouring quads
+// of one square (found at two levels, or by two windows) trace the same contours of cv::aruco's around
+// it, and DecodeSmall reads an exact repeat as it did the first time. On the real 640x480 photos 5 of
+// 25 second looks were repeats (the ChArUco board's squares), each one to nine readings of the cells.
+// Shared by the threads that decode small quads.
+class SecondLooks {
+ public:
+  // DecodeSmall of `corners`, computed once.
+  bool Decode(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, const cv::aruco::Dictionary& dictionary,
+              int border_bits, bool detect_inverted, SmallMarker& marker) {
+    {
+      const std::lock_guard<std::mutex> lock(mutex_);
+      for (const Look& look : looks_) {
+        if (look.corners != corners) continue;
+        marker = look.marker;
+        return look.read;
+      }
+    }
+    const bool read = DecodeSmall(grey, corners, dictionary, border_bits, detect_inverted, marker);
+    const std::lock_guard<std::mutex> lock(mutex_);
+    looks_.push_back({corners, read, marker});
+    return read;
+  }
+
+ private:
+  struct Look {
+    std::array<cv::Point2f, 4> corners;
+    bool read;
+    SmallMarker marker;
+  };
+  std::mutex mutex_;
+  std::vector<Look> looks_;
+};
+
 // Decodes a small quad cv::aruco's reading rejected (`decoded` and `id` set on success). At this
 // size a one-pixel difference of the contour flips cells of its 4-px-per-cell reading, and
 // cv::aruco's windows (3, 13, 23 px) trace slightly different contours than this search's: those
@@ -267,7 +302,7 @@ bool OnMarker(const Quad& q, const Quad& marker) {
 // Either way a pattern fit checks the reading; `checked` receives it.
 bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
                      const cv::aruco::DetectorParameters& p, const Quad& quad, Quad& decoded, int& id,
-                     bool& second_chance, FittedPattern& checked) {
+                     bool& second_chance, FittedPattern& checked, SecondLooks& looks) {
   const cv::Mat& grey = pyramid.images[0];
   std::vector<Quad> traced;
   OpenCvQuadsNear(pyramid, config, quad.corners, traced);
@@ -291,7 +326,7 @@ bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const
     // (the photos' ChArUco board: 3 of 44 second looks, each a few million instructions).
     if (std::any_of(local.begin(), q, [&](const Quad& tried) { return tried.corners == q->corners; })) continue;
     SmallMarker marker;
-    if (!DecodeSmall(grey, q->corners, dictionary, p.markerBorderBits, p.detectInvertedMarker, marker)) continue;
+    if (!looks.Decode(grey, q->corners, dictionary, p.markerBorderBits, p.detectInvertedMarker, marker)) continue;
     decoded = *q;
     decoded.corners = marker.corners;
     id = marker.id;
@@ -388,12 +423,13 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
                      [&](int a, int b) { return quads[a].area > quads[b].area || (quads[a].area == quads[b].area && a < b); });
     fragile.resize(kMaxSmallCandidates);
   }
+  SecondLooks looks;
   cv::parallel_for_(cv::Range(0, static_cast<int>(fragile.size())), [&](const cv::Range& range) {
     for (int f = range.start; f < range.end; ++f) {
       const int i = fragile[f];
       int id = -1;
       bool second = false;
-      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second, checked[i])) {
+      if (DecodeSmallQuad(pyramid, config, dictionary, p, quads[i], decoded[i], id, second, checked[i], looks)) {
         ids[i] = id;
         second_chance[i] = second;
       }
