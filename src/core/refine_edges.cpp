@@ -74,16 +74,19 @@ double Clearance(const Angle& corner, double reach) {
 // when it gets there). Where the border is thinner than the shortest reach (under 1.5 px) the
 // profiles run into the inner bits anyway: up to the edge's middle only (small tag36h11 markers,
 // 8-12 px, are then read more often from an edge-fitted framing: 26 against 10 of 280 jittered
-// framings on the distant set).
+// framings on the distant set). With `whole_edge` (a nearing pass) a border wide enough gets the
+// whole stretch between both corners' clearances at any length.
 struct Stretch {
   double start, stop;
   bool whole;
 };
-Stretch EdgeStretch(double length, const Angle& near_angle, const Angle& far_angle, double border) {
+Stretch EdgeStretch(double length, const Angle& near_angle, const Angle& far_angle, double border,
+                    bool whole_edge = false) {
   const double reach = Reach(border);
   const double start = Clearance(near_angle, reach);
   if (kReachShareOfBorder * border < kMinReach) return {start, std::min(0.5 * length, start + kFitLength), false};
   const double end = length - Clearance(far_angle, reach);
+  if (whole_edge) return {start, end, true};
   return {start, std::min(end, start + kFitLength), start + kFitLength >= end};
 }
 
@@ -335,16 +338,13 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     // from 1.3 to 0.6 px). Longer edges are fitted next to each corner over kFitLength: lens
     // distortion bends long edges.
     const double border = std::min(border_a, border_b);
-    Stretch both = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border);
     // A nearing pass (fewer profiles; two full passes follow) fits every edge once, between both
     // corners' clearances: it only has to bring the corners near, and a line over the whole edge does
     // (bench_detect, every set: the same ids; 640x480/50 corner p95 0.170 -> 0.168 px, medians within
     // 0.0002 px; callgrind of Detect on 640x480/50 146.0 -> 143.5 M; the one-off lens harness of stop
     // 43, k1 -0.3 and a 120-degree fisheye, edge fit alone: medians within 0.0006 px).
-    if (profile_count < kProfilesPerEdge && !both.whole && kReachShareOfBorder * border >= kMinReach) {
-      const double reach = Reach(border);
-      both = {Clearance(angle[e], reach), length - Clearance(angle[(e + 1) % 4], reach), true};
-    }
+    const bool nearing = profile_count < kProfilesPerEdge;
+    const Stretch both = EdgeStretch(length, angle[e], angle[(e + 1) % 4], border, nearing);
     if (both.whole) {
       near_ok[e] = far_ok[e] = FitEdge(grey, a, b, outward, border, both.start, both.stop, profile_count, near[e]);
       far[e] = near[e];
