@@ -42,7 +42,7 @@ if(CATKIN_ENABLE_TESTING)
   # ToMessage's covariance and orientation flag; the tracks' message, markers and frame change;
   # PointCloud2 -> pcl::PointCloud (CloudFromMessage).
   catkin_add_gtest(test_camera_model test/ros/test_camera_model.cpp test/ros/test_conversions.cpp
-    test/ros/test_tracks.cpp test/ros/test_cloud_conversion.cpp)
+    test/ros/test_tracks.cpp test/ros/test_cloud_conversion.cpp test/ros/rig.cpp)
   target_include_directories(test_camera_model PRIVATE ${ARUCOTAG_ROS_INCLUDES})
   target_include_directories(test_camera_model SYSTEM PRIVATE ${catkin_INCLUDE_DIRS})
   target_link_libraries(test_camera_model arucotag_nodelet arucotag_sim ${catkin_LIBRARIES} ${GTEST_MAIN_LIBRARIES})

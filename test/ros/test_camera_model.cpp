@@ -15,6 +15,8 @@
 #include <arucotag/ros/conversions.hpp>
 #include <arucotag/sim.hpp>
 
+#include "rig.hpp"
+
 namespace arucotag {
 namespace {
 
@@ -30,19 +32,8 @@ sim::Camera FullCamera() {
 
 sim::Camera FisheyeCamera() { return sim::MakeFisheyeCamera({1280, 720}, 140.0, {0.04, -0.01, 0.002, -0.0003}); }
 
-/// The full-resolution calibration of `camera` as its driver publishes it.
-sensor_msgs::CameraInfo InfoFor(const sim::Camera& camera) {
-  sensor_msgs::CameraInfo info;
-  info.width = camera.size.width;
-  info.height = camera.size.height;
-  info.distortion_model = camera.fisheye ? "equidistant" : "plumb_bob";
-  info.D = camera.dist;
-  for (int i = 0; i < 9; ++i) info.K[i] = camera.K.val[i];
-  info.R = {1, 0, 0, 0, 1, 0, 0, 0, 1};
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) info.P[r * 4 + c] = camera.K(r, c);
-  return info;
-}
+/// The full-resolution calibration of `camera` as its driver publishes it (the ROS tests' rig's).
+sensor_msgs::CameraInfo InfoFor(const sim::Camera& camera) { return *test::Rig::InfoMessage(camera, ros::Time()); }
 
 /// Sensor binning: every output pixel the mean of a b x b block (INTER_AREA is exactly that for an
 /// integer factor).
