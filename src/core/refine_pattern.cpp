@@ -479,10 +479,27 @@ class PatternFit {
     int step = std::max(1, static_cast<int>(std::lround(std::sqrt(every))));
     while (std::gcd(step, every) != 1) ++step;
     area_ /= every;
+    // Each row is tested only where it crosses the outline (a convex quad) and a pixel either side
+    // for round-off, on the lattice's pixels alone: the same samples as testing every pixel of the
+    // box, without the homography at the box's corners outside a tilted marker.
     for (int y = box.y; y < box.y + box.height; ++y) {
+      double from = std::numeric_limits<double>::infinity(), to = -from;
+      for (int k = 0; k < 4; ++k) {
+        const Vec2 &a = outline[k], &b = outline[(k + 1) % 4];
+        if (y < std::min(a.y, b.y) || y > std::max(a.y, b.y)) continue;
+        const double t = a.y == b.y ? 0.0 : (y - a.y) / (b.y - a.y);
+        const double x_a = a.y == b.y ? std::min(a.x, b.x) : a.x + t * (b.x - a.x);
+        const double x_b = a.y == b.y ? std::max(a.x, b.x) : x_a;
+        from = std::min(from, x_a);
+        to = std::max(to, x_b);
+      }
+      if (!(from <= to)) continue;
+      const int first = std::max(box.x, static_cast<int>(std::floor(from)) - 1);
+      const int last = std::min(box.x + box.width - 1, static_cast<int>(std::ceil(to)) + 1);
+      if (first > last) continue;
       const float* row = grey_.ptr<float>(y);
-      for (int x = box.x; x < box.x + box.width; ++x) {
-        if ((x + step * y) % every != 0) continue;
+      const int phase = (first + step * y) % every;
+      for (int x = phase == 0 ? first : first + every - phase; x <= last; x += every) {
         const Vec2 g = internal::ApplyHomography(to_grid, x - origin_.x, y - origin_.y);
         if (g.x < lo || g.x > hi || g.y < lo || g.y > hi) continue;
         samples_.push_back({x, y, static_cast<double>(row[x])});
@@ -598,18 +615,36 @@ class PatternFit {
                     &column_ = scratch_.column, &blurred_cover_ = scratch_.blurred_cover;
 };
 
-// Sum of a[k] * b[k] in float with eight running sums, so the loop vectorises (a single running sum
-// is a dependency chain the compiler may not reorder).
-ARUCOTAG_VECTOR_CLONES float Dot(const float* a, const float* b, size_t n) {
-  float lanes[8] = {};
-  size_t k = 0;
-  for (; k + 8 <= n; k += 8) {
-    for (int i = 0; i < 8; ++i) lanes[i] += a[k + i] * b[k + i];
+// out[j] = the sum of a[k] * b[j * n + k] over k < n, for j < count: each in float with eight
+// running sums (a SlopeVector of them, one vector register), so the loop vectorises (a single running
+// sum is a dependency chain the compiler may not reorder). Four columns of b share each pass over a:
+// a step's normal equations took 104 separate dot products, each loading a again (callgrind of Detect
+// on 640x480 frames of 5 markers: 52.7 -> 51.8 M). Each sum adds the same products in the same order
+// as a dot product of its own, so the normal equations are the same to the bit.
+ARUCOTAG_VECTOR_CLONES void Dots(const float* a, const float* b, size_t n, int count, float* out) {
+  constexpr int kBlock = 4;
+  for (int first = 0; first < count; first += kBlock) {
+    const int block = std::min(kBlock, count - first);
+    const float* columns[kBlock];
+    // A last block of fewer columns repeats its last one (sums that are not used).
+    for (int j = 0; j < kBlock; ++j) columns[j] = b + static_cast<size_t>(first + std::min(j, block - 1)) * n;
+    SlopeVector lanes[kBlock] = {};
+    size_t k = 0;
+    for (; k + 8 <= n; k += 8) {
+      SlopeVector x, y;
+      LoadSlopes(a + k, x);
+      for (int j = 0; j < kBlock; ++j) {
+        LoadSlopes(columns[j] + k, y);
+        lanes[j] += x * y;
+      }
+    }
+    for (int j = 0; j < block; ++j) {
+      float sum = 0.0f;
+      for (size_t t = k; t < n; ++t) sum += a[t] * columns[j][t];
+      for (int i = 0; i < 8; ++i) sum += lanes[j][i];
+      out[first + j] = sum;
+    }
   }
-  float sum = 0.0f;
-  for (; k < n; ++k) sum += a[k] * b[k];
-  for (float lane : lanes) sum += lane;
-  return sum;
 }
 
 // Cost evaluations on this thread (internal::PatternFitEvaluations).
@@ -662,10 +697,12 @@ double Normal(PatternFit& fit, const double* params, double scale, cv::Matx<doub
   }
   if (outliers) *outliers = static_cast<double>(missed) / static_cast<double>(n);
   if (jtj) {
+    // Column p against columns p..12 and the residuals (which follow them).
+    float dots[kParams + 1];
     for (int p = 0; p < kParams; ++p) {
-      const float* a = columns.data() + p * n;
-      (*jtr)(p) = Dot(a, columns.data() + kResidual * n, n);
-      for (int q = p; q < kParams; ++q) (*jtj)(p, q) = (*jtj)(q, p) = Dot(a, columns.data() + q * n, n);
+      Dots(columns.data() + p * n, columns.data() + p * n, n, kResidual + 1 - p, dots);
+      for (int q = p; q < kParams; ++q) (*jtj)(p, q) = (*jtj)(q, p) = dots[q - p];
+      (*jtr)(p) = dots[kResidual - p];
     }
   }
   return cost;
