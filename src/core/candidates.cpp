@@ -456,21 +456,15 @@ void OpenCvQuadsNear(const Pyramid& pyramid, const DetectorConfig& config, const
   // Per row of the region, the span deep inside the marker (its quad shrunk towards the centre).
   const cv::Point2f centre = Centre(corners);
   const float shrink = 1.0f - 2.0f * (tolerance + 2) / std::max(side, 1.0f);
-  std::vector<cv::Point2f> core;
-  for (const auto& c : corners) core.push_back(centre + (c - centre) * shrink);
+  std::array<cv::Point2f, 4> core;
+  for (int i = 0; i < 4; ++i) core[i] = centre + (corners[i] - centre) * shrink;
   std::vector<std::pair<int, int>> span(roi.height, {1, 0});
   if (shrink > 0.2f) {
     for (int yy = 0; yy < roi.height; ++yy) {
-      const float y = static_cast<float>(roi.y + yy);
-      float lo = 1e30f, hi = -1e30f;
-      for (int e = 0; e < 4; ++e) {
-        const cv::Point2f a = core[e], b = core[(e + 1) % 4];
-        if ((a.y - y) * (b.y - y) > 0.0f || a.y == b.y) continue;
-        const float x = a.x + (b.x - a.x) * (y - a.y) / (b.y - a.y);
-        lo = std::min(lo, x);
-        hi = std::max(hi, x);
+      float lo, hi;
+      if (RowSpan(core, static_cast<float>(roi.y + yy), lo, hi)) {
+        span[yy] = {static_cast<int>(std::ceil(lo)) - roi.x, static_cast<int>(std::floor(hi)) - roi.x};
       }
-      if (lo <= hi) span[yy] = {static_cast<int>(std::ceil(lo)) - roi.x, static_cast<int>(std::floor(hi)) - roi.x};
     }
   }
 

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -66,6 +67,22 @@ cv::Matx33d SquareToQuad(const std::array<Point, 4>& q) {
 inline cv::Point2d ApplyHomography(const cv::Matx33d& h, double u, double v) {
   const double w = h(2, 0) * u + h(2, 1) * v + h(2, 2);
   return {(h(0, 0) * u + h(0, 1) * v + h(0, 2)) / w, (h(1, 0) * u + h(1, 1) * v + h(1, 2)) / w};
+}
+
+/// Where the pixel row at height y crosses the convex quad: from lo to hi (its edges' crossings; a
+/// horizontal edge's ends are its neighbours' ends). False when the row misses the quad.
+template <typename T>
+bool RowSpan(const std::array<cv::Point_<T>, 4>& quad, T y, T& lo, T& hi) {
+  lo = std::numeric_limits<T>::infinity();
+  hi = -lo;
+  for (int e = 0; e < 4; ++e) {
+    const cv::Point_<T>&a = quad[e], &b = quad[(e + 1) % 4];
+    if ((a.y - y) * (b.y - y) > 0 || a.y == b.y) continue;
+    const T x = a.x + (b.x - a.x) * (y - a.y) / (b.y - a.y);
+    lo = std::min(lo, x);
+    hi = std::max(hi, x);
+  }
+  return lo <= hi;
 }
 
 /// Mean side length (px) of a quad.

@@ -492,17 +492,8 @@ class PatternFit {
     // for round-off, on the lattice's pixels alone: the same samples as testing every pixel of the
     // box, without the homography at the box's corners outside a tilted marker.
     for (int y = box.y; y < box.y + box.height; ++y) {
-      double from = std::numeric_limits<double>::infinity(), to = -from;
-      for (int k = 0; k < 4; ++k) {
-        const Vec2 &a = outline[k], &b = outline[(k + 1) % 4];
-        if (y < std::min(a.y, b.y) || y > std::max(a.y, b.y)) continue;
-        const double t = a.y == b.y ? 0.0 : (y - a.y) / (b.y - a.y);
-        const double x_a = a.y == b.y ? std::min(a.x, b.x) : a.x + t * (b.x - a.x);
-        const double x_b = a.y == b.y ? std::max(a.x, b.x) : x_a;
-        from = std::min(from, x_a);
-        to = std::max(to, x_b);
-      }
-      if (!(from <= to)) continue;
+      double from, to;
+      if (!internal::RowSpan(outline, static_cast<double>(y), from, to)) continue;
       const int first = std::max(box.x, static_cast<int>(std::floor(from)) - 1);
       const int last = std::min(box.x + box.width - 1, static_cast<int>(std::ceil(to)) + 1);
       if (first > last) continue;
@@ -869,9 +860,11 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     double trial_cost = 0.0;
     if (outliers >= kDoubtfulOutliers) {
       trial_cost = Cost(fit, trial, scale, &trial_outliers);
-      if (trial_cost < cost && trial_outliers > allowed) return false;
-      // The same point again (its coverage kept): one evaluation.
-      if (trial_cost < cost) trial_cost = Evaluate<true>(fit, trial, scale, &trial_jtj, &trial_jtr, &trial_outliers);
+      if (trial_cost < cost) {
+        if (trial_outliers > allowed) return false;
+        // The same point again (its coverage kept): one evaluation.
+        trial_cost = Evaluate<true>(fit, trial, scale, &trial_jtj, &trial_jtr, &trial_outliers);
+      }
     } else {
       trial_cost = Normal(fit, trial, scale, &trial_jtj, &trial_jtr, &trial_outliers);
     }
