@@ -444,7 +444,13 @@ class PatternFit {
     }
     float* sum = column_.data();
     for (const SampleRow& row : sample_rows_) {
-      Convolve<R>(&rows_[static_cast<size_t>(row.y) * width + row.x0], width, tap, sum + row.x0, row.x1 - row.x0);
+      const float* in = &rows_[static_cast<size_t>(row.y) * width + row.x0];
+      if (row.end - row.first == row.x1 - row.x0) {
+        // Every pixel of the row's span is a sample: straight into place.
+        Convolve<R>(in, width, tap, &cover[row.first], row.x1 - row.x0);
+        continue;
+      }
+      Convolve<R>(in, width, tap, sum + row.x0, row.x1 - row.x0);
       for (int i = row.first; i < row.end; ++i) cover[i] = sum[samples_[i].x - roi_.x];
     }
   }
