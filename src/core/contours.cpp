@@ -21,6 +21,12 @@
 #if defined(__SSE2__)
 #include <emmintrin.h>
 #endif
+// On x86-64 the scan also has an AVX2 build of its blocks, 32 pixels a step, taken where the CPU has
+// AVX2 (GCC and Clang build it whatever the target's flags are).
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define ARUCOTAG_AVX2_SCAN 1
+#include <immintrin.h>
+#endif
 
 namespace arucotag::internal {
 
@@ -43,7 +49,34 @@ constexpr int kDy[8] = {0, -1, -1, -1, 0, 1, 1, 1};
 // kVisited (2) and kRightEdge (0x82): bit 0 is set only on kForeground, bit 7 only on kRightEdge.
 // The first such x in [x, end), or `end`. Most changes along a row are borders already followed, so
 // the row is tested for starts a block at a time rather than stopping at every change.
+#if defined(ARUCOTAG_AVX2_SCAN)
+// NextStart's test on blocks of 32 pixels: the first start in them, or, when there is none, -1 - the
+// x where fewer than 32 pixels are left.
+__attribute__((target("avx2"))) int StartIn32PixelBlocks(const uchar* row, int x, int end) {
+  const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi8(1);
+  for (; x + 32 <= end; x += 32) {
+    const __m256i here = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(row + x));
+    const __m256i left = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(row + x - 1));
+    const __m256i outer = _mm256_and_si256(_mm256_cmpeq_epi8(left, zero), _mm256_cmpeq_epi8(here, one));
+    const __m256i hole = _mm256_and_si256(_mm256_cmpeq_epi8(here, zero), _mm256_cmpgt_epi8(left, zero));
+    const unsigned starts = static_cast<unsigned>(_mm256_movemask_epi8(_mm256_or_si256(outer, hole)));
+    if (starts != 0) return x + __builtin_ctz(starts);
+  }
+  return -1 - x;
+}
+#endif
+
 int NextStart(const uchar* row, int x, int end) {
+#if defined(ARUCOTAG_AVX2_SCAN)
+  // Half the steps of SSE2's blocks below: the scan was over half of the border following's
+  // instructions on 1080p frames.
+  static const bool avx2 = __builtin_cpu_supports("avx2");
+  if (avx2) {
+    const int found = StartIn32PixelBlocks(row, x, end);
+    if (found >= 0) return found;
+    x = -1 - found;
+  }
+#endif
 #if defined(__SSE2__)
   // Sixteen pixels a step where SSE2 is (every x86-64).
   const __m128i zero = _mm_setzero_si128(), one = _mm_set1_epi8(1);
