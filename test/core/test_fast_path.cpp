@@ -203,6 +203,44 @@ TEST(FastPath, CanonicalSamplingMatchesWarpPerspectivesRounding) {
   EXPECT_GT(ties, 1000);
 }
 
+// The pyramid's halving (its own 2x2 average where the CPU has AVX2) against cv::resize's INTER_AREA,
+// pixel for pixel: random images of even and odd sizes, widths either side of its 32-pixel steps, every
+// pixel sum's remainder (the rounding), regions of a bigger image in and out, and the sizes the
+// benchmark's frames halve through.
+TEST(FastPath, HalvingMatchesInterArea) {
+  cv::RNG rng(46);
+  const cv::Size sizes[] = {{2, 2},    {3, 5},     {30, 2},    {62, 4},    {64, 6},     {66, 8},    {127, 33},
+                            {130, 34}, {320, 240}, {641, 480}, {640, 481}, {960, 540}, {1920, 1080}};
+  int pixels = 0;
+  for (const cv::Size& size : sizes) {
+    for (int trial = 0; trial < 3; ++trial) {
+      cv::Mat src(size, CV_8UC1);
+      rng.fill(src, cv::RNG::UNIFORM, 0, 256);
+      if (trial == 1) src.setTo(255);  // the largest sums
+      cv::Mat expected, halved;
+      cv::resize(src, expected, cv::Size(size.width / 2, size.height / 2), 0, 0, cv::INTER_AREA);
+      internal::HalveArea(src, halved);
+      ASSERT_EQ(halved.size(), expected.size()) << size;
+      ASSERT_EQ(cv::norm(halved, expected, cv::NORM_INF), 0.0) << size << " trial " << trial;
+      pixels += static_cast<int>(expected.total());
+    }
+  }
+  // A region of a bigger image in, into a region of another: only that region is written.
+  cv::Mat big(200, 300, CV_8UC1), out(120, 160, CV_8UC1, cv::Scalar(7));
+  rng.fill(big, cv::RNG::UNIFORM, 0, 256);
+  const cv::Rect from(10, 20, 98, 64), to(30, 40, 49, 32);
+  cv::Mat region = out(to);
+  internal::HalveArea(big(from), region);
+  cv::Mat expected;
+  cv::resize(big(from), expected, to.size(), 0, 0, cv::INTER_AREA);
+  EXPECT_EQ(region.data, out.ptr<uchar>(to.y) + to.x);
+  EXPECT_EQ(cv::norm(out(to), expected, cv::NORM_INF), 0.0);
+  cv::Mat outside = out.clone();
+  outside(to).setTo(7);
+  EXPECT_EQ(cv::countNonZero(outside != 7), 0);
+  std::printf("%d halved pixels compared\n", pixels);
+}
+
 // The default refinement (edge fit) and cv::aruco's sub-pixel one, both supported by the fast path.
 TEST(FastPath, RealPhotosSameIdsAndCornersAsTheFullSearch) {
   for (const auto refinement : {DetectorConfig().corner_refinement, CornerRefinement::kSubpix}) {
