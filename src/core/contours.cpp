@@ -43,12 +43,6 @@ constexpr uchar kRightEdge = 0x82;
 constexpr int kDx[8] = {1, 1, 0, -1, -1, -1, 0, 1};
 constexpr int kDy[8] = {0, -1, -1, -1, 0, 1, 1, 1};
 
-// Where a border starts, reading the row as it stands (marks included): at x with its left neighbour
-// background and x unmarked foreground (an outer border), or x background and its left neighbour
-// unmarked or kVisited foreground (a hole). Pixel values are kBackground (0), kForeground (1),
-// kVisited (2) and kRightEdge (0x82): bit 0 is set only on kForeground, bit 7 only on kRightEdge.
-// The first such x in [x, end), or `end`. Most changes along a row are borders already followed, so
-// the row is tested for starts a block at a time rather than stopping at every change.
 #if defined(ARUCOTAG_AVX2_SCAN)
 // NextStart's test on blocks of 32 pixels: the first start in them, or, when there is none, -1 - the
 // x where fewer than 32 pixels are left.
@@ -66,6 +60,12 @@ __attribute__((target("avx2"))) int StartIn32PixelBlocks(const uchar* row, int x
 }
 #endif
 
+// Where a border starts, reading the row as it stands (marks included): at x with its left neighbour
+// background and x unmarked foreground (an outer border), or x background and its left neighbour
+// unmarked or kVisited foreground (a hole). Pixel values are kBackground (0), kForeground (1),
+// kVisited (2) and kRightEdge (0x82): bit 0 is set only on kForeground, bit 7 only on kRightEdge.
+// The first such x in [x, end), or `end`. Most changes along a row are borders already followed, so
+// the row is tested for starts a block at a time rather than stopping at every change.
 int NextStart(const uchar* row, int x, int end) {
 #if defined(ARUCOTAG_AVX2_SCAN)
   // Half the steps of SSE2's blocks below: the scan was over half of the border following's
