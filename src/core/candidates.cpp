@@ -22,6 +22,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "contours.hpp"
+#include "parallel.hpp"
 
 // HalveArea's AVX2 build (GCC and Clang build it whatever the target's flags are).
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -375,7 +376,7 @@ void FindQuads(const Pyramid& pyramid, const SearchTask& task, const DetectorCon
 
 // A task at `level` over `roi` (level pixels) with cv::aruco's perimeter limits (rates of the full
 // frame), at reduced levels nothing below their min_side.
-void HalveArea(const cv::Mat& src, cv::Mat& dst) {
+void HalveArea(const cv::Mat& src, cv::Mat& dst, int threads) {
   CV_Assert(src.type() == CV_8UC1);
   const cv::Size half(src.cols / 2, src.rows / 2);
 #if defined(ARUCOTAG_AVX2_HALVE)
@@ -383,8 +384,8 @@ void HalveArea(const cv::Mat& src, cv::Mat& dst) {
   if (avx2 && src.cols % 2 == 0 && src.rows % 2 == 0 && !half.empty()) {
     dst.create(half, CV_8UC1);
     // Blocks of about 64k output pixels, as cv::resize splits its rows for the threads.
-    cv::parallel_for_(cv::Range(0, half.height), [&](const cv::Range& range) { HalveRows(src, dst, range); },
-                      static_cast<double>(half.area()) / (1 << 16));
+    ParallelFor(cv::Range(0, half.height), threads, [&](const cv::Range& range) { HalveRows(src, dst, range); },
+                static_cast<double>(half.area()) / (1 << 16));
     return;
   }
 #endif
@@ -407,7 +408,7 @@ SearchTask MakeTask(const DetectorConfig& config, const cv::Size& frame, int lev
 void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
               std::vector<Quad>& quads) {
   std::vector<std::vector<Quad>> per_task(tasks.size());
-  cv::parallel_for_(cv::Range(0, static_cast<int>(tasks.size())), [&](const cv::Range& range) {
+  ParallelFor(cv::Range(0, static_cast<int>(tasks.size())), config.threads, [&](const cv::Range& range) {
     for (int i = range.start; i < range.end; ++i) FindQuads(pyramid, tasks[i], config, per_task[i]);
   });
   for (auto& q : per_task) quads.insert(quads.end(), q.begin(), q.end());

@@ -36,21 +36,23 @@ struct Quad {
 
 /// cv::resize(src, dst, (src.cols / 2, src.rows / 2), 0, 0, INTER_AREA) of a CV_8UC1 image, the same
 /// pixels: where both sides are even and the CPU has AVX2 each is (a + b + c + d + 2) >> 2 of its 2x2
-/// block, as OpenCV's own even-size path computes it, 32 to a step; otherwise cv::resize itself. `dst`
-/// keeps its buffer when it already has the size (a region of a bigger image stays one).
-void HalveArea(const cv::Mat& src, cv::Mat& dst);
+/// block, as OpenCV's own even-size path computes it, 32 to a step, on at most `threads` threads (see
+/// ParallelFor); otherwise cv::resize itself. `dst` keeps its buffer when it already has the size (a
+/// region of a bigger image stays one).
+void HalveArea(const cv::Mat& src, cv::Mat& dst, int threads = 0);
 
-/// The frame at full, half and quarter resolution (INTER_AREA), level 0 sharing the caller's pixels.
+/// The frame at full, half and quarter resolution (INTER_AREA), level 0 sharing the caller's pixels;
+/// built on at most `threads` threads (DetectorConfig::threads).
 struct Pyramid {
   std::array<cv::Mat, kLevels> images;
-  void Build(const cv::Mat& grey) {
+  void Build(const cv::Mat& grey, int threads = 0) {
     images[0] = grey;
-    for (int l = 1; l < kLevels; ++l) HalveArea(images[l - 1], images[l]);
+    for (int l = 1; l < kLevels; ++l) HalveArea(images[l - 1], images[l], threads);
   }
   /// Level 0, and level 1 only inside `regions` (level-1 pixels; elsewhere undefined): what a frame
   /// searched in a few regions needs. Only for frames of even width and height, where the 2x
   /// INTER_AREA of Build averages 2x2 blocks, so the regions get Build's pixels.
-  void BuildLevel1Regions(const cv::Mat& grey, const std::vector<cv::Rect>& regions) {
+  void BuildLevel1Regions(const cv::Mat& grey, const std::vector<cv::Rect>& regions, int threads = 0) {
     CV_Assert(grey.cols % 2 == 0 && grey.rows % 2 == 0);
     images[0] = grey;
     images[1].create(grey.rows / 2, grey.cols / 2, CV_8UC1);
@@ -60,7 +62,7 @@ struct Pyramid {
       const cv::Rect r = region & level1;
       if (r.empty()) continue;
       cv::Mat out = images[1](r);
-      HalveArea(grey(cv::Rect(2 * r.x, 2 * r.y, 2 * r.width, 2 * r.height)), out);
+      HalveArea(grey(cv::Rect(2 * r.x, 2 * r.y, 2 * r.width, 2 * r.height)), out, threads);
     }
   }
 };

@@ -17,6 +17,7 @@
 
 #include "candidates.hpp"
 #include "identify.hpp"
+#include "parallel.hpp"
 #include "refine_corner.hpp"
 
 #include <algorithm>
@@ -114,7 +115,7 @@ std::vector<Found> FullSearch(const Pyramid& pyramid, const DetectorConfig& conf
                               FrameReport& report, const std::vector<Found>& known = {}) {
   const cv::Size frame = pyramid.images[0].size();
   std::vector<SearchTask> tasks;
-  AddRegion(config, frame, cv::Rect(cv::Point(0, 0), frame), 0, kLevels - 1, std::max(1, cv::getNumThreads()), tasks);
+  AddRegion(config, frame, cv::Rect(cv::Point(0, 0), frame), 0, kLevels - 1, ThreadBudget(config.threads), tasks);
   report.full_search = true;
   return Search(pyramid, tasks, config, dictionary, p, report, known);
 }
@@ -320,7 +321,7 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
 
   const bool tracking = state && config.tracking;
   if (!tracking) {
-    pyramid.Build(grey);
+    pyramid.Build(grey, config.threads);
     return FullSearch(pyramid, config, *dictionary, parameters, r);
   }
 
@@ -369,9 +370,9 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
           for (const auto& t : tasks) {
             if (t.level == 1) level1.push_back(t.roi);
           }
-          pyramid.BuildLevel1Regions(grey, level1);
+          pyramid.BuildLevel1Regions(grey, level1, config.threads);
         } else {
-          pyramid.Build(grey);
+          pyramid.Build(grey, config.threads);
         }
         found = Search(pyramid, tasks, config, *dictionary, parameters, r, read);
       }
@@ -380,7 +381,7 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
     }
   }
   if (full) {
-    pyramid.Build(grey);
+    pyramid.Build(grey, config.threads);
     found = FullSearch(pyramid, config, *dictionary, parameters, r, read);
     found.insert(found.end(), read.begin(), read.end());
   }

@@ -9,6 +9,7 @@
 
 #include "codes.hpp"
 #include "decode_small.hpp"
+#include "parallel.hpp"
 #include "refine_corner.hpp"
 #include "refine_edges.hpp"
 
@@ -392,7 +393,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     for (size_t k = first; k < last; ++k) {
       if (!on_read_marker(order[k])) batch.push_back(order[k]);
     }
-    cv::parallel_for_(cv::Range(0, static_cast<int>(batch.size())), [&](const cv::Range& range) {
+    ParallelFor(cv::Range(0, static_cast<int>(batch.size())), config.threads, [&](const cv::Range& range) {
       for (int b = range.start; b < range.end; ++b) {
         const size_t i = batch[b];
         int id = -1, rotation = 0;
@@ -424,7 +425,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     fragile.resize(kMaxSmallCandidates);
   }
   SecondLooks looks;
-  cv::parallel_for_(cv::Range(0, static_cast<int>(fragile.size())), [&](const cv::Range& range) {
+  ParallelFor(cv::Range(0, static_cast<int>(fragile.size())), config.threads, [&](const cv::Range& range) {
     for (int f = range.start; f < range.end; ++f) {
       const int i = fragile[f];
       int id = -1;
@@ -454,7 +455,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   const bool subpix = config.corner_refinement == CornerRefinement::kSubpix;
   const int cells = dictionary.markerSize + 2 * p.markerBorderBits;
   std::vector<Found> found(kept.size());
-  cv::parallel_for_(cv::Range(0, static_cast<int>(kept.size())), [&](const cv::Range& range) {
+  ParallelFor(cv::Range(0, static_cast<int>(kept.size())), config.threads, [&](const cv::Range& range) {
     for (int i = range.start; i < range.end; ++i) {
       Quad q = decoded[kept[i]];
       const bool second = second_chance[kept[i]];

@@ -34,6 +34,7 @@ const Field<DetectorConfig, int> kDetectorInts[] = {
     ARUCOTAG_FIELD(DetectorConfig, full_search_interval),
     ARUCOTAG_FIELD(DetectorConfig, pattern_fit_max_side),
     ARUCOTAG_FIELD(DetectorConfig, pattern_fit_max_markers),
+    ARUCOTAG_FIELD(DetectorConfig, threads),
 };
 const Field<DetectorConfig, double> kDetectorDoubles[] = {
     ARUCOTAG_FIELD(DetectorConfig, adaptive_thresh_constant),

@@ -442,6 +442,50 @@ TEST(FastPath, CopiesAndResetStartWithoutTrackedMarkers) {
   EXPECT_EQ(detector.tracking_stats().full_searches, 2u);  // the first frame and the one after the reset
 }
 
+// DetectorConfig::threads fixes how the frame is searched (its full-resolution strips) whatever OpenCV's
+// thread count: the same pixels searched and the same markers and corners, to the bit, at one, two and
+// three OpenCV threads; 0 follows OpenCV's count. More strips search more pixels (their overlaps).
+TEST(FastPath, ThreadsSettingFixesTheSearchWhateverOpenCVsThreadCount) {
+  const int saved = cv::getNumThreads();
+  struct Run {
+    std::vector<ArucoTag> tags;
+    unsigned long long pixels;
+  };
+  const auto run = [](const Photo& photo, int opencv_threads, int threads) {
+    cv::setNumThreads(opencv_threads);
+    DetectorConfig config;
+    config.dictionary = photo.dictionary;
+    config.threads = threads;
+    const Detector detector(config);
+    const std::vector<ArucoTag> tags = Detect(test::LoadGrey(photo.file), detector);
+    return Run{tags, detector.tracking_stats().searched_pixels};
+  };
+  const auto same = [](const Run& a, const Run& b) {
+    if (a.pixels != b.pixels || a.tags.size() != b.tags.size()) return false;
+    for (size_t i = 0; i < a.tags.size(); ++i) {
+      if (a.tags[i].id != b.tags[i].id || a.tags[i].corners != b.tags[i].corners) return false;
+    }
+    return true;
+  };
+  for (const Photo& photo : {kPhotos[1], kPhotos[4]}) {
+    for (int threads = 1; threads <= 3; ++threads) {
+      const Run one = run(photo, 1, threads);
+      EXPECT_EQ(one.tags.size(), photo.markers) << photo.file << " threads " << threads;
+      for (int opencv_threads = 2; opencv_threads <= 3; ++opencv_threads) {
+        EXPECT_TRUE(same(one, run(photo, opencv_threads, threads)))
+            << photo.file << " threads " << threads << " at " << opencv_threads << " OpenCV threads";
+      }
+      EXPECT_TRUE(same(run(photo, threads, 0), one)) << photo.file << " threads 0 at " << threads << " OpenCV threads";
+    }
+    EXPECT_LT(run(photo, 1, 1).pixels, run(photo, 1, 2).pixels) << photo.file;
+    EXPECT_LT(run(photo, 1, 2).pixels, run(photo, 1, 3).pixels) << photo.file;
+  }
+  cv::setNumThreads(saved);
+  DetectorConfig negative;
+  negative.threads = -1;
+  EXPECT_THROW(Detector{negative}, Error);
+}
+
 TEST(FastPath, BadIntervalIsRejected) {
   DetectorConfig config;
   config.full_search_interval = 0;

@@ -482,6 +482,14 @@ TEST(Detector, ReconfigureKeepsInvalidOutAndAppliesValid) {
 
   Reconfigure(service, "min_marker_perimeter_rate", 0.03, false);
   EXPECT_TRUE(Only(world->rig.PublishUntil(scene, world->pnp), 7));
+
+  // A one-thread budget: the same marker, found on the nodelet's own thread; then back to OpenCV's count.
+  config = Reconfigure(service, "threads", 1, true);
+  EXPECT_EQ(Value(config.ints, "threads"), 1.0);
+  EXPECT_TRUE(Only(world->rig.PublishUntil(scene, world->pnp), 7));
+  config = Reconfigure(service, "threads", 0, true);
+  EXPECT_EQ(Value(config.ints, "threads"), 0.0);
+  EXPECT_TRUE(Only(world->rig.PublishUntil(scene, world->pnp), 7));
 }
 
 TEST(Detector, BadInputLeavesManagerAliveAndNextFrameDetected) {
