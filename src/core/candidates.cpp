@@ -24,9 +24,7 @@
 #include "contours.hpp"
 #include "parallel.hpp"
 
-// HalveArea's AVX2 build (GCC and Clang build it whatever the target's flags are).
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#define ARUCOTAG_AVX2_HALVE 1
+#if defined(ARUCOTAG_HAND_AVX2)
 #include <immintrin.h>
 #endif
 
@@ -34,10 +32,10 @@ namespace arucotag::internal {
 
 namespace {
 
-#if defined(ARUCOTAG_AVX2_HALVE)
+#if defined(ARUCOTAG_HAND_AVX2)
 // Rows [range) of HalveArea's output: 32 pixels a step from two 64-pixel runs of its input rows, the
 // pairs summed by one multiply-add each (bytes times 1), the rest of the row one pixel at a time.
-__attribute__((target("avx2"))) void HalveRows(const cv::Mat& src, cv::Mat& dst, const cv::Range& range) {
+ARUCOTAG_AVX2 void HalveRows(const cv::Mat& src, cv::Mat& dst, const cv::Range& range) {
   const __m256i ones = _mm256_set1_epi8(1), two = _mm256_set1_epi16(2);
   const int w = dst.cols;
   for (int y = range.start; y < range.end; ++y) {
@@ -379,9 +377,8 @@ void FindQuads(const Pyramid& pyramid, const SearchTask& task, const DetectorCon
 void HalveArea(const cv::Mat& src, cv::Mat& dst, int threads) {
   CV_Assert(src.type() == CV_8UC1);
   const cv::Size half(src.cols / 2, src.rows / 2);
-#if defined(ARUCOTAG_AVX2_HALVE)
-  static const bool avx2 = __builtin_cpu_supports("avx2");
-  if (avx2 && src.cols % 2 == 0 && src.rows % 2 == 0 && !half.empty()) {
+#if defined(ARUCOTAG_HAND_AVX2)
+  if (CpuHasAvx2() && src.cols % 2 == 0 && src.rows % 2 == 0 && !half.empty()) {
     dst.create(half, CV_8UC1);
     // Blocks of about 64k output pixels, as cv::resize splits its rows for the threads.
     ParallelFor(cv::Range(0, half.height), threads, [&](const cv::Range& range) { HalveRows(src, dst, range); },

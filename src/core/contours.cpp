@@ -21,10 +21,7 @@
 #if defined(__SSE2__)
 #include <emmintrin.h>
 #endif
-// On x86-64 the scan also has an AVX2 build of its blocks, 32 pixels a step, taken where the CPU has
-// AVX2 (GCC and Clang build it whatever the target's flags are).
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#define ARUCOTAG_AVX2_SCAN 1
+#if defined(ARUCOTAG_HAND_AVX2)
 #include <immintrin.h>
 #endif
 
@@ -43,10 +40,10 @@ constexpr uchar kRightEdge = 0x82;
 constexpr int kDx[8] = {1, 1, 0, -1, -1, -1, 0, 1};
 constexpr int kDy[8] = {0, -1, -1, -1, 0, 1, 1, 1};
 
-#if defined(ARUCOTAG_AVX2_SCAN)
+#if defined(ARUCOTAG_HAND_AVX2)
 // NextStart's test on blocks of 32 pixels: the first start in them, or, when there is none, -1 - the
 // x where fewer than 32 pixels are left.
-__attribute__((target("avx2"))) int StartIn32PixelBlocks(const uchar* row, int x, int end) {
+ARUCOTAG_AVX2 int StartIn32PixelBlocks(const uchar* row, int x, int end) {
   const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi8(1);
   for (; x + 32 <= end; x += 32) {
     const __m256i here = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(row + x));
@@ -67,11 +64,10 @@ __attribute__((target("avx2"))) int StartIn32PixelBlocks(const uchar* row, int x
 // The first such x in [x, end), or `end`. Most changes along a row are borders already followed, so
 // the row is tested for starts a block at a time rather than stopping at every change.
 int NextStart(const uchar* row, int x, int end) {
-#if defined(ARUCOTAG_AVX2_SCAN)
+#if defined(ARUCOTAG_HAND_AVX2)
   // Half the steps of SSE2's blocks below: the scan was over half of the border following's
   // instructions on 1080p frames.
-  static const bool avx2 = __builtin_cpu_supports("avx2");
-  if (avx2) {
+  if (CpuHasAvx2()) {
     const int found = StartIn32PixelBlocks(row, x, end);
     if (found >= 0) return found;
     x = -1 - found;
