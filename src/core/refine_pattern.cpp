@@ -205,9 +205,14 @@ Kernel BlurKernel(double variance) {
     const double z = a / sigma;
     return a * 0.5 * std::erfc(-z / std::sqrt(2.0)) + sigma * std::exp(-0.5 * z * z) / std::sqrt(2.0 * M_PI);
   };
+  // Each tap takes the ramp at three neighbouring integers: every ramp value is made once (the same
+  // arguments, so the same taps; the error function and exponential were most of a kernel's cost).
+  std::array<double, 2 * kBlurRadius + 3> ramps;
+  for (int k = -kernel.radius - 1; k <= kernel.radius + 1; ++k) ramps[k + kBlurRadius + 1] = ramp(k);
+  const auto ramp_at = [&ramps](int k) { return ramps[k + kBlurRadius + 1]; };
   double sum = 0.0;
   for (int k = -kernel.radius; k <= kernel.radius; ++k) {
-    const double w = ramp(k + 1.0) - 2.0 * ramp(k) + ramp(k - 1.0);
+    const double w = ramp_at(k + 1) - 2.0 * ramp_at(k) + ramp_at(k - 1);
     kernel.taps[k + kBlurRadius] = w;
     sum += w;
   }
