@@ -98,9 +98,9 @@ struct DetectorConfig {
   /// strips, decoding, refinement): a CPU budget for the detector that leaves the other cores to the
   /// rest of the stack. 1 runs them on the calling thread alone. 0 = as many as OpenCV's thread
   /// count (cv::getNumThreads(), process-wide). The full-resolution level is searched in this many
-  /// strips (OpenCV's count for 0), and the markers' order and, by up to a few hundredths of a pixel,
-  /// some corners depend on the strips: a setting other than 0 gives the same result on any machine
-  /// and at any OpenCV thread count. cv::aruco's own search (fast_path false) uses OpenCV's count.
+  /// strips (OpenCV's count for 0), with what crosses a seam between them searched again: the markers,
+  /// their corners and their order are the same to the bit at any setting and any OpenCV thread count.
+  /// cv::aruco's own search (fast_path false) uses OpenCV's count.
   int threads = 0;
 
   std::vector<int> allowed_ids;  ///< when not empty, only these ids are reported

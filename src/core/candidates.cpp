@@ -18,6 +18,8 @@
 #include <cmath>
 #include <limits>
 #include <numeric>
+#include <tuple>
+#include <utility>
 
 #include <opencv2/imgproc.hpp>
 
@@ -352,6 +354,8 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
     const cv::Point2f d1 = quad.corners[1] - quad.corners[0], d2 = quad.corners[2] - quad.corners[0];
     if (double(d1.x) * d2.y - double(d1.y) * d2.x < 0.0) std::swap(quad.corners[1], quad.corners[3]);
     quad.area = static_cast<float>(cv::contourArea(std::vector<cv::Point2f>(quad.corners.begin(), quad.corners.end())));
+    quad.box = box + roi.tl();
+    quad.hole = scan.hole();
     out.push_back(quad);
     if (!scan.hole()) quad_boxes.push_back(box);
   }
@@ -409,6 +413,113 @@ void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, cons
     for (int i = range.start; i < range.end; ++i) FindQuads(pyramid, tasks[i], config, per_task[i]);
   });
   for (auto& q : per_task) quads.insert(quads.end(), q.begin(), q.end());
+}
+
+namespace {
+
+// The rows of `task`'s region (level pixels) between which QuadsFromBinary keeps a quad's corners:
+// `inner` inside an edge of the region within the image, the border cv::aruco keeps from the
+// image's own edges.
+std::pair<int, int> KeptRows(const SearchTask& task, const cv::Size& level_size, const DetectorConfig& config) {
+  const int inner = task.window / 2 + 2;
+  const int border = config.min_distance_to_border;  // level 0
+  const cv::Rect& roi = task.roi;
+  return {roi.y > 0 ? roi.y + inner : border,
+          roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border};
+}
+
+}  // namespace
+
+void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
+                   std::vector<Quad>& quads) {
+  const cv::Size frame = pyramid.images[0].size();
+  struct Seam {
+    int above_last, below_first;  // the last row the strip above keeps, the first the strip below keeps
+    cv::Rect region;              // every strip of those columns
+  };
+  std::vector<Seam> seams;
+  for (size_t a = 0; a < tasks.size(); ++a) {
+    const SearchTask& above = tasks[a];
+    if (above.level != 0) continue;
+    for (size_t b = 0; b < tasks.size(); ++b) {
+      const SearchTask& below = tasks[b];
+      if (below.level != 0 || below.roi.x != above.roi.x || below.roi.width != above.roi.width ||
+          below.roi.y <= above.roi.y || below.roi.y >= above.roi.y + above.roi.height) {
+        continue;
+      }
+      cv::Rect region = above.roi | below.roi;
+      for (const SearchTask& t : tasks) {
+        if (t.level == 0 && t.roi.x == above.roi.x && t.roi.width == above.roi.width) region |= t.roi;
+      }
+      seams.push_back({KeptRows(above, frame, config).second, KeptRows(below, frame, config).first, region});
+    }
+  }
+  if (seams.empty()) return;
+  const int inner = kLevelSearch[0].window / 2 + 2;  // FindQuads' margin at level 0
+  std::vector<cv::Rect> searched;
+  std::vector<Quad> found;
+  const size_t coarse_count = quads.size();
+  // Biggest first: the neighbourhood of a marker's quad holds those of its cells and of its coarser
+  // copies.
+  std::vector<size_t> coarse_quads;
+  for (size_t i = 0; i < coarse_count; ++i) {
+    if (quads[i].level > 0) coarse_quads.push_back(i);
+  }
+  std::sort(coarse_quads.begin(), coarse_quads.end(),
+            [&](size_t a, size_t b) { return quads[a].area > quads[b].area || (quads[a].area == quads[b].area && a < b); });
+  for (const size_t i : coarse_quads) {
+    const Quad& coarse = quads[i];
+    // The full-resolution quad of the same outline lies within a level pixel or so of this one.
+    const int slack = (1 << coarse.level) + 2;
+    const cv::Rect box = Bounds(coarse.corners);
+    for (const Seam& seam : seams) {
+      if (box.y + box.height - 1 + slack <= seam.above_last || box.y - slack >= seam.below_first ||
+          (box & seam.region).empty()) {
+        continue;
+      }
+      // Its neighbourhood, wide enough that the full-resolution quad's corners keep clear of the
+      // window's reach from its edges, and with it the outlines around the marker (its quiet zone's),
+      // which have no coarse quad of their own (clipped to the strips' region, whose edges the
+      // strips share).
+      const cv::Rect needed = Grow(box, slack + inner + 2, frame) & seam.region;
+      if (std::any_of(searched.begin(), searched.end(), [&](const cv::Rect& r) { return (needed & r) == needed; })) {
+        continue;
+      }
+      const int around = std::max(box.width, box.height) / 4;
+      const SearchTask local = MakeTask(config, frame, 0, Grow(needed, around, frame) & seam.region);
+      searched.push_back(local.roi);
+      found.clear();
+      FindQuads(pyramid, local, config, found);
+      // What either strip keeps it found itself.
+      for (const Quad& q : found) {
+        const float top = std::min({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
+        const float bottom = std::max({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
+        if (bottom > seam.above_last && top < seam.below_first) quads.push_back(q);
+      }
+    }
+  }
+  // A strip skips the holes inside the quads it made (a marker's light cells); one cut by the seam
+  // made none there, and kept them: what the single search would not have listed goes.
+  std::vector<cv::Rect> outer;
+  for (size_t i = coarse_count; i < quads.size(); ++i) {
+    if (!quads[i].hole) outer.push_back(quads[i].box);
+  }
+  quads.erase(std::remove_if(quads.begin(), quads.end(),
+                             [&](const Quad& q) {
+                               return q.level == 0 && q.hole && std::any_of(outer.begin(), outer.end(), [&](const cv::Rect& o) {
+                                        return (q.box & o) == q.box;
+                                      });
+                             }),
+              quads.end());
+}
+
+void SortQuads(std::vector<Quad>& quads) {
+  const auto key = [](const Quad& q) {
+    return std::make_tuple(q.level, q.corners[0].y, q.corners[0].x, q.corners[1].y, q.corners[1].x, q.corners[2].y,
+                           q.corners[2].x, q.corners[3].y, q.corners[3].x, q.area, q.perimeter, q.box.y, q.box.x,
+                           q.box.height, q.box.width, q.hole);
+  };
+  std::sort(quads.begin(), quads.end(), [&](const Quad& a, const Quad& b) { return key(a) < key(b); });
 }
 
 // Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates: their corners (in

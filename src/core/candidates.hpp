@@ -32,6 +32,8 @@ struct Quad {
   int level = 0;      ///< pyramid level it was found at (0 = full resolution)
   float area = 0.0f;  ///< px^2, full resolution
   int perimeter = 0;  ///< contour length at its level, px
+  cv::Rect box;       ///< its contour's bounding box, level pixels
+  bool hole = false;  ///< its contour is a hole's border (a light region inside a dark one)
 };
 
 /// cv::resize(src, dst, (src.cols / 2, src.rows / 2), 0, 0, INTER_AREA) of a CV_8UC1 image, the same
@@ -82,6 +84,19 @@ SearchTask MakeTask(const DetectorConfig& config, const cv::Size& frame, int lev
 /// Runs every task (in parallel) and appends the quads they find to `quads`.
 void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
               std::vector<Quad>& quads);
+
+/// Level-0 strips of one region (tasks of the same columns, each reaching past the next one's top)
+/// each keep only the quads whose corners lie clear of their own inner edges, so a quad across the
+/// seam between two, too tall for the overlap, is found by neither at full resolution, where a single
+/// task over the region finds it. For each coarser quad across a seam this searches its
+/// neighbourhood at full resolution and appends what neither strip keeps: the quads then do not
+/// depend on how many strips (threads) searched the region.
+void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
+                   std::vector<Quad>& quads);
+
+/// Sorts quads by their content (level, corners, then the rest), so that what is made of them does
+/// not depend on the order the tasks (threads) listed them in.
+void SortQuads(std::vector<Quad>& quads);
 
 /// Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates at this `rate`.
 bool TooClose(const Quad& a, const Quad& b, double rate);

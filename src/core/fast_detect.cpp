@@ -94,12 +94,17 @@ bool Overlaps(const Quad& q, const std::vector<Found>& known) {
 }
 
 // Quads of `tasks`, merged and decoded; quads on markers in `known` (found without a search) are
-// not decoded again.
-std::vector<Found> Search(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
-                          const cv::aruco::Dictionary& dictionary, const cv::aruco::DetectorParameters& p,
-                          FrameReport& report, const std::vector<Found>& known = {}) {
+// not decoded again. `strips`: the tasks' level 0 is one region cut into strips (AddRegion), whose
+// seams are completed (CompleteSeams). Quads are put in order of what they are before anything is
+// made of them: the result does not depend on which task (thread) found what.
+std::vector<Found> Search(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, bool strips,
+                          const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
+                          const cv::aruco::DetectorParameters& p, FrameReport& report,
+                          const std::vector<Found>& known = {}) {
   std::vector<Quad> quads;
   RunTasks(pyramid, tasks, config, quads);
+  if (strips) CompleteSeams(pyramid, tasks, config, quads);
+  SortQuads(quads);
   quads = MergeQuads(std::move(quads), config.min_marker_distance_rate);
   if (!known.empty()) {
     quads.erase(std::remove_if(quads.begin(), quads.end(), [&](const Quad& q) { return Overlaps(q, known); }),
@@ -117,7 +122,7 @@ std::vector<Found> FullSearch(const Pyramid& pyramid, const DetectorConfig& conf
   std::vector<SearchTask> tasks;
   AddRegion(config, frame, cv::Rect(cv::Point(0, 0), frame), 0, kLevels - 1, ThreadBudget(config.threads), tasks);
   report.full_search = true;
-  return Search(pyramid, tasks, config, dictionary, p, report, known);
+  return Search(pyramid, tasks, true, config, dictionary, p, report, known);
 }
 
 // A 1/32-scale copy of the frame to tell the next frame of a stream from another image: each pixel
@@ -374,7 +379,7 @@ std::vector<Found> FastDetect(const cv::Mat& grey, const DetectorConfig& config,
         } else {
           pyramid.Build(grey, config.threads);
         }
-        found = Search(pyramid, tasks, config, *dictionary, parameters, r, read);
+        found = Search(pyramid, tasks, false, config, *dictionary, parameters, r, read);
       }
       found.insert(found.end(), read.begin(), read.end());
       full = Lost(previous, found, grey.size());
