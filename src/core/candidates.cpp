@@ -417,6 +417,10 @@ void RunTasks(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, cons
 
 namespace {
 
+// CompleteSeams searches a coarse quad's neighbourhood at full resolution only while it covers at
+// most 1 / kMaxSeamSearchDivisor of the strips' region.
+constexpr int kMaxSeamSearchDivisor = 2;
+
 // The rows of `task`'s region (level pixels) between which QuadsFromBinary keeps a quad's corners:
 // `inner` inside an edge of the region within the image, the border cv::aruco keeps from the
 // image's own edges.
@@ -456,8 +460,6 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
   }
   if (seams.empty()) return;
   const int inner = kLevelSearch[0].window / 2 + 2;  // FindQuads' margin at level 0
-  std::vector<cv::Rect> searched;
-  std::vector<Quad> found;
   const size_t coarse_count = quads.size();
   // Biggest first: the neighbourhood of a marker's quad holds those of its cells and of its coarser
   // copies.
@@ -467,6 +469,7 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
   }
   std::sort(coarse_quads.begin(), coarse_quads.end(),
             [&](size_t a, size_t b) { return quads[a].area > quads[b].area || (quads[a].area == quads[b].area && a < b); });
+  std::vector<SearchTask> local;
   for (const size_t i : coarse_quads) {
     const Quad& coarse = quads[i];
     // The full-resolution quad of the same outline lies within a level pixel or so of this one.
@@ -482,19 +485,30 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
       // which have no coarse quad of their own (clipped to the strips' region, whose edges the
       // strips share).
       const cv::Rect needed = Grow(box, slack + inner + 2, frame) & seam.region;
-      if (std::any_of(searched.begin(), searched.end(), [&](const cv::Rect& r) { return (needed & r) == needed; })) {
+      if (std::any_of(local.begin(), local.end(), [&](const SearchTask& t) { return (needed & t.roi) == needed; })) {
         continue;
       }
-      const int around = std::max(box.width, box.height) / 4;
-      const SearchTask local = MakeTask(config, frame, 0, Grow(needed, around, frame) & seam.region);
-      searched.push_back(local.roi);
-      found.clear();
-      FindQuads(pyramid, local, config, found);
-      // What either strip keeps it found itself.
-      for (const Quad& q : found) {
-        const float top = std::min({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
-        const float bottom = std::max({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
-        if (bottom > seam.above_last && top < seam.below_first) quads.push_back(q);
+      const cv::Rect roi = Grow(needed, std::max(box.width, box.height) / 4, frame) & seam.region;
+      // A quad this big (a marker at arm's length, a door frame) is left to its coarse level: its
+      // neighbourhood would cost another full-resolution pass over much of the frame.
+      if (kMaxSeamSearchDivisor * static_cast<int64_t>(roi.area()) > seam.region.area()) continue;
+      local.push_back(MakeTask(config, frame, 0, roi));
+    }
+  }
+  std::vector<std::vector<Quad>> found(local.size());
+  ParallelFor(cv::Range(0, static_cast<int>(local.size())), config.threads, [&](const cv::Range& range) {
+    for (int k = range.start; k < range.end; ++k) FindQuads(pyramid, local[k], config, found[k]);
+  });
+  // What a strip keeps it found itself: only what crosses a seam further than both strips beside it
+  // keep (no strip keeps those) is added.
+  for (const auto& quads_of_task : found) {
+    for (const Quad& q : quads_of_task) {
+      const float top = std::min({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
+      const float bottom = std::max({q.corners[0].y, q.corners[1].y, q.corners[2].y, q.corners[3].y});
+      if (std::any_of(seams.begin(), seams.end(), [&](const Seam& seam) {
+            return bottom > seam.above_last && top < seam.below_first;
+          })) {
+        quads.push_back(q);
       }
     }
   }
