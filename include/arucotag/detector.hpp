@@ -99,7 +99,9 @@ struct DetectorConfig {
   /// rest of the stack. 1 runs them on the calling thread alone. 0 = as many as OpenCV's thread
   /// count (cv::getNumThreads(), process-wide). The full-resolution level is searched in this many
   /// strips (OpenCV's count for 0), with what crosses a seam between them searched again: the markers,
-  /// their corners and their order are the same to the bit at any setting and any OpenCV thread count.
+  /// their corners and their order are the same to the bit at any setting and any OpenCV thread count,
+  /// save a marker across a seam so big that its neighbourhood covers over half the frame (it is not
+  /// searched again; its corners can move by hundredths of a pixel).
   /// cv::aruco's own search (fast_path false) uses OpenCV's count.
   int threads = 0;
 
@@ -173,7 +175,9 @@ class Detector {
 /// length set and no pose. Throws arucotag::Error on an empty frame, one that is not 8-bit with
 /// 1 or 3 channels, or one OpenCV cannot search with this configuration (a corner refinement window
 /// wider than the frame, say). With config().fast_path and tracking (the defaults) it uses and updates the
-/// Detector's tracked markers (see DetectorConfig::tracking); safe to call from several threads.
+/// Detector's tracked markers (see DetectorConfig::tracking); safe to call from several threads. The
+/// markers, their corners and their order do not depend on the number of threads it runs on (see
+/// DetectorConfig::threads for the one exception).
 std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector);
 
 /// Detect for a frame taken through `lens` without rectification (a raw image and its camera

@@ -538,6 +538,21 @@ TEST(FastPath, TheSameMarkersWhateverTheThreadCount) {
     }
   }
   cv::setNumThreads(saved);
+  // A marker of 500 px across the seam: its neighbourhood would be over half the frame, so it keeps its
+  // coarse quad at two threads (a bounded cost), and is still found, within hundredths of a pixel.
+  sim::RenderOptions options;
+  options.seed = 17;
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, {across(5, 0.0, 360.0, 0.3, 15.0, 20.0)}, options), grey);
+  DetectorConfig config;
+  config.threads = 1;
+  const std::vector<ArucoTag> one = Detect(grey, Detector(config));
+  config.threads = 2;
+  const std::vector<ArucoTag> two = Detect(grey, Detector(config));
+  ASSERT_EQ(one.size(), 1u);
+  ASSERT_EQ(two.size(), 1u);
+  EXPECT_EQ(two[0].id, 5);
+  for (int c = 0; c < 4; ++c) EXPECT_LT(cv::norm(two[0].corners[c] - one[0].corners[c]), 0.05) << "corner " << c;
 }
 
 TEST(FastPath, BadIntervalIsRejected) {
