@@ -775,19 +775,28 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     // The residual of the brightness-and-contrast fit at one variance, which starts the fit when it is
     // the best so far (or, with `first_in_scan`, as good: a variance a scan in order would try first).
     // `keep`: its coverage is copied, for a variance that may not be the last one tried.
+    // The normal equations' sums that do not depend on the variance, made once: the pixel count, the
+    // grey levels' sum and their sum of squares (each sum in the order a variance's own loop added it,
+    // so the same values).
+    double count = 0.0, grey_sum = 0.0, yy = 0.0;
+    for (size_t k = 0; k < fit.size(); ++k) {
+      const double grey_level = fit.samples()[k].grey;
+      count += 1.0;
+      grey_sum += grey_level;
+      yy += grey_level * grey_level;
+    }
     const auto try_variance = [&](double variance, bool keep, bool first_in_scan) {
       fit.Blurred(variance, cover, nullptr);
       last = variance;
-      cv::Matx22d a = cv::Matx22d::zeros();
-      cv::Vec2d b(0, 0);
-      double yy = 0.0;
+      double cover_sum = 0.0, cover_squares = 0.0, cross = 0.0;
       for (size_t k = 0; k < fit.size(); ++k) {
-        const double grey_level = fit.samples()[k].grey;
-        const cv::Vec2d j(1.0, cover[k]);
-        a += j * j.t();
-        b += j * grey_level;
-        yy += grey_level * grey_level;
+        const double c = cover[k];
+        cover_sum += c;
+        cover_squares += c * c;
+        cross += c * fit.samples()[k].grey;
       }
+      const cv::Matx22d a(count, cover_sum, cover_sum, cover_squares);
+      const cv::Vec2d b(grey_sum, cross);
       if (std::abs(cv::determinant(a)) < 1e-9) return std::numeric_limits<double>::infinity();
       const cv::Vec2d x = a.inv() * b;
       const double residual = yy - x.dot(b);  // sum of squares left by the least-squares fit
