@@ -19,7 +19,6 @@
 #include <limits>
 #include <numeric>
 #include <tuple>
-#include <utility>
 
 #include <opencv2/imgproc.hpp>
 
@@ -264,6 +263,25 @@ bool HullQuad(const std::vector<cv::Point>& contour, const cv::Rect& box, const 
   return MarkerLikeBinary(binary, corners);
 }
 
+// The columns and rows (level pixels, inclusive) within which QuadsFromBinary keeps a quad's
+// corners in `roi`: `inner` inside each edge of the region that lies within the image, and the
+// border cv::aruco keeps from the image's own edges.
+struct Kept {
+  int left, top, right, bottom;
+};
+Kept KeptCorners(const cv::Rect& roi, const cv::Size& level_size, int level, int inner, const DetectorConfig& config) {
+  // Image border as cv::aruco applies it.
+  const int border = level == 0 ? config.min_distance_to_border
+                                : std::max(1, static_cast<int>(std::ceil(config.min_distance_to_border * Scale(level))));
+  return {roi.x > 0 ? roi.x + inner : border, roi.y > 0 ? roi.y + inner : border,
+          roi.x + roi.width < level_size.width ? roi.x + roi.width - 1 - inner : level_size.width - 1 - border,
+          roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border};
+}
+
+// FindQuads' `inner`: the rows and columns a threshold window of this size reaches past a region's
+// edge (where the region's own threshold differs from the whole image's), and two pixels more.
+int FindQuadsInner(int window) { return window / 2 + 2; }
+
 // Quads in a thresholded region (`binary` with its 1-pixel zero frame; `roi` where it lies in its
 // level), filtered exactly as cv::aruco's _findMarkerContours filters them, plus: a quad closer than
 // `inner` to an edge of the region that is not the image's is dropped (that marker belongs to a
@@ -272,15 +290,7 @@ bool HullQuad(const std::vector<cv::Point>& contour, const cv::Rect& box, const 
 void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level_size, const SearchTask& task,
                      int inner, const DetectorConfig& config, std::vector<Quad>& out, const cv::Rect* near = nullptr,
                      int tolerance = 0) {
-  // Image border as cv::aruco applies it.
-  const int border = task.level == 0 ? config.min_distance_to_border
-                                     : std::max(1, static_cast<int>(std::ceil(config.min_distance_to_border *
-                                                                              Scale(task.level))));
-  const int left = roi.x > 0 ? roi.x + inner : border;
-  const int top = roi.y > 0 ? roi.y + inner : border;
-  const int right = roi.x + roi.width < level_size.width ? roi.x + roi.width - 1 - inner : level_size.width - 1 - border;
-  const int bottom =
-      roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border;
+  const auto [left, top, right, bottom] = KeptCorners(roi, level_size, task.level, inner, config);
 
   // Borders come in raster order; cv::findContours lists them last found first, and so does `out`
   // (of equal quads, merging keeps the one listed last).
@@ -371,7 +381,7 @@ void FindQuads(const Pyramid& pyramid, const SearchTask& task, const DetectorCon
   if (roi.width < task.window + 2 || roi.height < task.window + 2) return;
   cv::Mat binary;
   Threshold(level_image(roi), task.window, config.adaptive_thresh_constant, binary);
-  QuadsFromBinary(binary, roi, level_image.size(), task, task.window / 2 + 2, config, out);
+  QuadsFromBinary(binary, roi, level_image.size(), task, FindQuadsInner(task.window), config, out);
 }
 
 }  // namespace
@@ -421,17 +431,6 @@ namespace {
 // most 1 / kMaxSeamSearchDivisor of the strips' region.
 constexpr int kMaxSeamSearchDivisor = 2;
 
-// The rows of `task`'s region (level pixels) between which QuadsFromBinary keeps a quad's corners:
-// `inner` inside an edge of the region within the image, the border cv::aruco keeps from the
-// image's own edges.
-std::pair<int, int> KeptRows(const SearchTask& task, const cv::Size& level_size, const DetectorConfig& config) {
-  const int inner = task.window / 2 + 2;
-  const int border = config.min_distance_to_border;  // level 0
-  const cv::Rect& roi = task.roi;
-  return {roi.y > 0 ? roi.y + inner : border,
-          roi.y + roi.height < level_size.height ? roi.y + roi.height - 1 - inner : level_size.height - 1 - border};
-}
-
 }  // namespace
 
 void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks, const DetectorConfig& config,
@@ -455,11 +454,15 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
       for (const SearchTask& t : tasks) {
         if (t.level == 0 && t.roi.x == above.roi.x && t.roi.width == above.roi.width) region |= t.roi;
       }
-      seams.push_back({KeptRows(above, frame, config).second, KeptRows(below, frame, config).first, region});
+      // What FindQuads keeps of each strip (its region clipped to the frame, as it clips it).
+      const cv::Rect whole(cv::Point(0, 0), frame);
+      const Kept above_kept = KeptCorners(above.roi & whole, frame, 0, FindQuadsInner(above.window), config);
+      const Kept below_kept = KeptCorners(below.roi & whole, frame, 0, FindQuadsInner(below.window), config);
+      seams.push_back({above_kept.bottom, below_kept.top, region});
     }
   }
   if (seams.empty()) return;
-  const int inner = kLevelSearch[0].window / 2 + 2;  // FindQuads' margin at level 0
+  const int inner = FindQuadsInner(kLevelSearch[0].window);
   const size_t coarse_count = quads.size();
   // Biggest first: the neighbourhood of a marker's quad holds those of its cells and of its coarser
   // copies.

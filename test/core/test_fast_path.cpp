@@ -27,6 +27,15 @@ std::multiset<int> Ids(const std::vector<ArucoTag>& tags) {
   return ids;
 }
 
+// The same markers, corners to the bit, in the same order.
+bool SameTags(const std::vector<ArucoTag>& a, const std::vector<ArucoTag>& b) {
+  if (a.size() != b.size()) return false;
+  for (size_t i = 0; i < a.size(); ++i) {
+    if (a[i].id != b[i].id || a[i].corners != b[i].corners) return false;
+  }
+  return true;
+}
+
 const ArucoTag* Find(const std::vector<ArucoTag>& tags, int id) {
   const auto it = std::find_if(tags.begin(), tags.end(), [id](const ArucoTag& t) { return t.id == id; });
   return it == tags.end() ? nullptr : &*it;
@@ -460,13 +469,7 @@ TEST(FastPath, ThreadsSettingFixesTheSearchWhateverOpenCVsThreadCount) {
     const std::vector<ArucoTag> tags = Detect(test::LoadGrey(photo.file), detector);
     return Run{tags, detector.tracking_stats().searched_pixels};
   };
-  const auto same = [](const Run& a, const Run& b) {
-    if (a.pixels != b.pixels || a.tags.size() != b.tags.size()) return false;
-    for (size_t i = 0; i < a.tags.size(); ++i) {
-      if (a.tags[i].id != b.tags[i].id || a.tags[i].corners != b.tags[i].corners) return false;
-    }
-    return true;
-  };
+  const auto same = [](const Run& a, const Run& b) { return a.pixels == b.pixels && SameTags(a.tags, b.tags); };
   for (const Photo& photo : {kPhotos[1], kPhotos[4]}) {
     for (int threads = 1; threads <= 3; ++threads) {
       const Run one = run(photo, 1, threads);
@@ -501,13 +504,6 @@ TEST(FastPath, TheSameMarkersWhateverTheThreadCount) {
   const auto across = [&](int id, double x, double row, double range, double yaw, double roll) {
     return sim::FacingCamera(id, 0.15, {x, (row - cy) * range / f, range}, yaw, 10.0, roll);
   };
-  const auto same = [](const std::vector<ArucoTag>& a, const std::vector<ArucoTag>& b) {
-    if (a.size() != b.size()) return false;
-    for (size_t i = 0; i < a.size(); ++i) {
-      if (a[i].id != b[i].id || a[i].corners != b[i].corners) return false;
-    }
-    return true;
-  };
   int views = 0;
   for (const double range : {1.0, 1.6, 2.6}) {
     for (const double roll : {0.0, 25.0, 60.0}) {
@@ -528,11 +524,11 @@ TEST(FastPath, TheSameMarkersWhateverTheThreadCount) {
       EXPECT_EQ(Ids(one), (std::multiset<int>{3, 11, 27})) << view;
       for (int threads = 2; threads <= 4; ++threads) {
         config.threads = threads;
-        EXPECT_TRUE(same(Detect(grey, Detector(config)), one)) << view << ", threads " << threads;
+        EXPECT_TRUE(SameTags(Detect(grey, Detector(config)), one)) << view << ", threads " << threads;
       }
       for (int opencv_threads = 1; opencv_threads <= 3; ++opencv_threads) {
         cv::setNumThreads(opencv_threads);
-        EXPECT_TRUE(same(Detect(grey, Detector()), one)) << view << ", threads 0 at " << opencv_threads
+        EXPECT_TRUE(SameTags(Detect(grey, Detector()), one)) << view << ", threads 0 at " << opencv_threads
                                                          << " OpenCV threads";
       }
     }
