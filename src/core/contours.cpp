@@ -6,8 +6,9 @@
 // border's points go to one reused vector, and the caller measures only the borders it keeps. The
 // raster scan between borders tests 32 (AVX2), 16 (SSE2) or 8 pixels at a time for a border's start
 // instead of stopping at every change of value, most of which are borders already followed, and the
-// search for a border's next pixel is straight-line code per direction it came from (perf, 640x480,
-// 720p and distant renders: 0.38 -> 0.22 -> 0.18 ms a frame, the same borders).
+// search for a border's next pixel is straight-line code per direction it came from, which jumps to
+// the next pixel's own code (perf, 640x480, 720p and distant renders: 0.38 -> 0.22 -> 0.18 ms a
+// frame, the same borders; the jumps: a quarter fewer instructions following).
 #include "contours.hpp"
 
 #include "geometry.hpp"
@@ -127,35 +128,90 @@ ARUCOTAG_INLINE uchar At(const uchar* here, const uchar* up, const uchar* down) 
   }
 }
 
-// Counter-clockwise from direction Back + 1, the first foreground neighbour of `here`, as Back plus
-// the number of steps turned (Back + 8 is direction Back itself, foreground: the pixel came from
-// there). Straight-line tests with the directions known at compile time, one sequence per Back.
-template <int Back>
-ARUCOTAG_INLINE int Turn(const uchar* here, ptrdiff_t step) {
-  const uchar *up = here - step, *down = here + step;
-  if (At<Back + 1>(here, up, down) != kBackground) return Back + 1;
-  if (At<Back + 2>(here, up, down) != kBackground) return Back + 2;
-  if (At<Back + 3>(here, up, down) != kBackground) return Back + 3;
-  if (At<Back + 4>(here, up, down) != kBackground) return Back + 4;
-  if (At<Back + 5>(here, up, down) != kBackground) return Back + 5;
-  if (At<Back + 6>(here, up, down) != kBackground) return Back + 6;
-  if (At<Back + 7>(here, up, down) != kBackground) return Back + 7;
-  return Back + 8;
-}
-
-// Turn<back>, for a direction known at run time.
-int TurnFrom(int back, const uchar* here, ptrdiff_t step) {
-  switch (back) {
-    case 0: return Turn<0>(here, step);
-    case 1: return Turn<1>(here, step);
-    case 2: return Turn<2>(here, step);
-    case 3: return Turn<3>(here, step);
-    case 4: return Turn<4>(here, step);
-    case 5: return Turn<5>(here, step);
-    case 6: return Turn<6>(here, step);
-    default: return Turn<7>(here, step);
+// The step to the neighbour in direction D (0 right, counter-clockwise) of a row `step` bytes long.
+template <int D>
+constexpr ptrdiff_t Offset(ptrdiff_t step) {
+  switch (D & 7) {
+    case 0: return 1;
+    case 1: return 1 - step;
+    case 2: return -step;
+    case 3: return -1 - step;
+    case 4: return -1;
+    case 5: return step - 1;
+    case 6: return step;
+    default: return step + 1;
   }
 }
+
+// Follow's move from `here` to its neighbour in direction D & 7, D being the direction the previous
+// pixel lies in (Back) plus the steps turned counter-clockwise to the first foreground neighbour:
+// marks `here` (kRightEdge when the search passed direction 0, D > 8, which is then background),
+// records it, and moves on; true when the border is closed instead (back at the start, about to
+// repeat its first step).
+template <int D>
+ARUCOTAG_INLINE bool Move(uchar*& here, ptrdiff_t step, const uchar* start, const uchar* last, cv::Point& pt,
+                          std::vector<cv::Point>& points) {
+  uchar* const next = here + Offset<D>(step);
+  if (D > 8) {
+    *here = kRightEdge;
+  } else if (*here == kForeground) {
+    *here = kVisited;
+  }
+  points.push_back(pt);
+  pt.x += kDx[D & 7];
+  pt.y += kDy[D & 7];
+  if (next == start && here == last) return true;
+  here = next;
+  return false;
+}
+
+// One state of Follow's loop per direction BACK the previous pixel lies in: counter-clockwise from
+// direction BACK + 1, the first foreground neighbour (BACK + 8 is BACK itself, foreground: the pixel
+// came from there), straight-line tests with the directions known at compile time; each followed by
+// its Move and a jump to the state of the pixel moved to, whose previous pixel lies in the opposite
+// direction (NEXTk, checked below, is BACK + k + 4 mod 8). Every direction is a constant in its
+// state's code and the next state a direct jump, where a loop that switched on the direction at every
+// pixel and read the step's offset and coordinates from tables spent a quarter of its instructions on
+// that (callgrind of Detect on 640x480 with five markers: following 6.11 -> 4.59 M, the same borders).
+#define ARUCOTAG_FOLLOW_FROM(BACK, NEXT1, NEXT2, NEXT3, NEXT4, NEXT5, NEXT6, NEXT7, NEXT8)                        \
+  from_##BACK : {                                                                                                 \
+    static_assert(NEXT1 == (BACK + 5) % 8 && NEXT2 == (BACK + 6) % 8 && NEXT3 == (BACK + 7) % 8 &&              \
+                      NEXT4 == BACK && NEXT5 == (BACK + 1) % 8 && NEXT6 == (BACK + 2) % 8 &&                     \
+                      NEXT7 == (BACK + 3) % 8 && NEXT8 == (BACK + 4) % 8,                                         \
+                  "the state after turning k steps from BACK is BACK + k + 4");                                  \
+    const uchar *up = here - step, *down = here + step;                                                          \
+    if (At<BACK + 1>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 1>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT1;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 2>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 2>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT2;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 3>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 3>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT3;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 4>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 4>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT4;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 5>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 5>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT5;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 6>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 6>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT6;                                                                                          \
+    }                                                                                                             \
+    if (At<BACK + 7>(here, up, down) != kBackground) {                                                           \
+      if (Move<BACK + 7>(here, step, start, last, pt, points)) return;                                            \
+      goto from_##NEXT7;                                                                                          \
+    }                                                                                                             \
+    /* The previous pixel is foreground: the search ends there at the latest. */                                 \
+    if (Move<BACK + 8>(here, step, start, last, pt, points)) return;                                              \
+    goto from_##NEXT8;                                                                                            \
+  }
 
 // Follows the border through `start` (at `pt` in output coordinates), an outer border's leftmost
 // top pixel or the foreground pixel left of a hole's, clockwise around the foreground, marking it.
@@ -178,27 +234,29 @@ void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<c
     return;
   }
 
+  // Counter-clockwise from the previous pixel's direction to the next foreground neighbour, pixel
+  // after pixel, until the border closes.
   uchar* here = start;
-  for (;;) {
-    // Counter-clockwise from the previous pixel's direction to the next foreground neighbour. The
-    // previous pixel is foreground, so the search ends within eight directions; past 8 it passed
-    // direction 0.
-    const int turn = TurnFrom(s, here, step);
-    s = turn & 7;
-    uchar* next = here + offset[s];
-    if (turn > 8) {
-      *here = kRightEdge;  // the search passed direction 0: the right neighbour is background
-    } else if (*here == kForeground) {
-      *here = kVisited;
-    }
-    points.push_back(pt);
-    pt.x += kDx[s];
-    pt.y += kDy[s];
-    if (next == start && here == last) break;  // back at the start, about to repeat its first step
-    here = next;
-    s = (s + 4) & 7;
+  switch (s) {
+    case 0: goto from_0;
+    case 1: goto from_1;
+    case 2: goto from_2;
+    case 3: goto from_3;
+    case 4: goto from_4;
+    case 5: goto from_5;
+    case 6: goto from_6;
+    default: goto from_7;
   }
+  ARUCOTAG_FOLLOW_FROM(0, 5, 6, 7, 0, 1, 2, 3, 4)
+  ARUCOTAG_FOLLOW_FROM(1, 6, 7, 0, 1, 2, 3, 4, 5)
+  ARUCOTAG_FOLLOW_FROM(2, 7, 0, 1, 2, 3, 4, 5, 6)
+  ARUCOTAG_FOLLOW_FROM(3, 0, 1, 2, 3, 4, 5, 6, 7)
+  ARUCOTAG_FOLLOW_FROM(4, 1, 2, 3, 4, 5, 6, 7, 0)
+  ARUCOTAG_FOLLOW_FROM(5, 2, 3, 4, 5, 6, 7, 0, 1)
+  ARUCOTAG_FOLLOW_FROM(6, 3, 4, 5, 6, 7, 0, 1, 2)
+  ARUCOTAG_FOLLOW_FROM(7, 4, 5, 6, 7, 0, 1, 2, 3)
 }
+#undef ARUCOTAG_FOLLOW_FROM
 
 // The index after i on a ring of `count` indices.
 int NextOnRing(int i, int count) { return i + 1 == count ? 0 : i + 1; }
