@@ -129,19 +129,7 @@ ARUCOTAG_INLINE uchar At(const uchar* here, const uchar* up, const uchar* down) 
 }
 
 // The step to the neighbour in direction D (0 right, counter-clockwise) of a row `step` bytes long.
-template <int D>
-constexpr ptrdiff_t Offset(ptrdiff_t step) {
-  switch (D & 7) {
-    case 0: return 1;
-    case 1: return 1 - step;
-    case 2: return -step;
-    case 3: return -1 - step;
-    case 4: return -1;
-    case 5: return step - 1;
-    case 6: return step;
-    default: return step + 1;
-  }
-}
+constexpr ptrdiff_t Offset(int d, ptrdiff_t step) { return kDx[d & 7] + kDy[d & 7] * step; }
 
 // Follow's move from `here` to its neighbour in direction D & 7, D being the direction the previous
 // pixel lies in (Back) plus the steps turned counter-clockwise to the first foreground neighbour:
@@ -151,7 +139,7 @@ constexpr ptrdiff_t Offset(ptrdiff_t step) {
 template <int D>
 ARUCOTAG_INLINE bool Move(uchar*& here, ptrdiff_t step, const uchar* start, const uchar* last, cv::Point& pt,
                           std::vector<cv::Point>& points) {
-  uchar* const next = here + Offset<D>(step);
+  uchar* const next = here + Offset(D, step);
   if (D > 8) {
     *here = kRightEdge;
   } else if (*here == kForeground) {
@@ -196,7 +184,8 @@ ARUCOTAG_INLINE bool Move(uchar*& here, ptrdiff_t step, const uchar* start, cons
 // Follows the border through `start` (at `pt` in output coordinates), an outer border's leftmost
 // top pixel or the foreground pixel left of a hole's, clockwise around the foreground, marking it.
 void Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<cv::Point>& points) {
-  const ptrdiff_t offset[8] = {1, 1 - step, -step, -1 - step, -1, step - 1, step, step + 1};
+  const ptrdiff_t offset[8] = {Offset(0, step), Offset(1, step), Offset(2, step), Offset(3, step),
+                               Offset(4, step), Offset(5, step), Offset(6, step), Offset(7, step)};
   points.clear();
 
   // The last foreground neighbour before the border's first step, searched clockwise from the
