@@ -207,8 +207,12 @@ TEST(PatternFit, ConfiguredBySideLength) {
   const auto fitted = Detect(scene.grey, Detector(config));
   ASSERT_EQ(border_only.size(), 1u);
   ASSERT_EQ(fitted.size(), 1u);
-  EXPECT_LE(MaxError(fitted[0].corners, scene.truth), 0.05);
-  EXPECT_GT(MaxError(border_only[0].corners, scene.truth), 0.1);
+  const double fitted_error = MaxError(fitted[0].corners, scene.truth);
+  EXPECT_LE(fitted_error, 0.05);
+  // Off, the corners are the edge fit's: several times further off on this small tilted marker (worst
+  // corner 0.085 px against the fit's 0.011 px; over 0.1 px before the edge fit took its levels from
+  // the flat beside the edge).
+  EXPECT_GT(MaxError(border_only[0].corners, scene.truth), 3.0 * fitted_error);
 }
 
 // A crowded frame: only the pattern_fit_max_markers smallest markers get the fit, the rest keep the
@@ -539,8 +543,9 @@ TEST(PatternFit, ScratchLeftByOtherFitsChangesNothing) {
 // offset its fit added last frame, and one Gauss-Newton step, taken without a cost evaluation to
 // confirm it, ends the fit. Three moving, turning markers of 25-50 px tilted 40-45 degrees, blurred
 // (1 px) and noisy, over 12 frames: the tracked corners are as close to the truth as each frame's
-// own fit from a cold start, for at most three quarters of its cost evaluations (measured 38 against
-// 56 with kCarriedLastStep at 0.15 px and kColdLastStep at 0.05 px; 39 against 69 with kColdLastStep
+// own fit from a cold start, for at most four fifths of its cost evaluations (measured 35 against 46
+// since the edge fit takes its levels from the flat beside the edge: the cold start is nearer too; 38
+// against 56 before, with kCarriedLastStep at 0.15 px and kColdLastStep at 0.05 px; 39 against 69 with kColdLastStep
 // at 0.02 px, and 40 against 79 with kCarriedLastStep at 0.1 px before stop 29; 56 when the start is
 // the edge fit alone, whose bias at this tilt and blur is over the 0.1 px a step could move unconfirmed).
 TEST(PatternFit, TrackedFitStartsFromLastFramesOffsetAndTakesOneStep) {
@@ -597,7 +602,7 @@ TEST(PatternFit, TrackedFitStartsFromLastFramesOffsetAndTakesOneStep) {
               cold_worst);
   EXPECT_LE(median(tracked_errors), median(cold_errors) + 0.005);
   EXPECT_LE(tracked_worst, cold_worst + 0.01);
-  EXPECT_LE(4 * tracked_evaluations, 3 * cold_evaluations);
+  EXPECT_LE(5 * tracked_evaluations, 4 * cold_evaluations);
 }
 
 // A frame the core fuzzer found: a DICT_4X4_50 marker whose bottom edge is broken into a step. Its
