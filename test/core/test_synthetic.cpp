@@ -1,6 +1,8 @@
 // Rendered markers of known pose through a known camera: ids, sub-pixel corners, PnP pose, centre.
 #include <gtest/gtest.h>
 
+#include <arucotag/refine.hpp>
+
 #include "scene.hpp"
 
 namespace arucotag {
@@ -179,6 +181,50 @@ TEST(Synthetic, EdgeFitOfSmallShearedMarkers) {
               smallest, largest, sum / views, worst, views, close);
   EXPECT_LE(sum / views, 0.25);
   EXPECT_GE(close, 34);
+}
+
+// The edge fit's levels come from the flat beside the edge, not from its profiles' ends: the light
+// end of a profile across a 22-25 px marker's edge lies on the clutter past a narrow quiet zone, the
+// dark end near the inner bits, and a level halfway between the ends put the edges off. Started from
+// the true corners, mean signed error along the centre-to-corner direction and median error (px) with
+// a quiet zone of 0.75 / 1 / 1.5 cells: -0.234 / -0.025 / +0.041 and 0.246 / 0.054 / 0.038 from the
+// ends' levels, -0.027 / +0.001 / +0.009 and 0.038 / 0.023 / 0.020 from the flat's. (Half a cell, 1.9
+// px, is too narrow for either: -0.44 and -0.12.)
+TEST(Synthetic, EdgeFitUnbiasedBesideANarrowQuietZone) {
+  const sim::Camera camera = test::RoverCamera();
+  for (const double quiet_zone : {0.75, 1.0, 1.5}) {
+    double radial = 0.0;
+    std::vector<double> errors;
+    for (int view = 0; view < 12; ++view) {
+      const double range = 6.0 + 0.1 * view;  // 25 down to 22 px
+      const sim::Marker marker = sim::FacingCamera(view, 0.15, {-0.6 + 0.1 * view, 0.2 - 0.04 * view, range},
+                                                   -25.0 + 5.0 * view, 10.0, 7.0 * view);
+      sim::RenderOptions options;
+      options.quiet_zone = quiet_zone;
+      options.blur_sigma = 0.5;
+      options.noise_sigma = 1.0;
+      options.seed = view + 1;
+      const cv::Mat grey = test::RenderGrey(camera, {marker}, options);
+      const auto truth = sim::ProjectCorners(camera, marker);
+      std::array<cv::Point2f, 4> refined = truth;
+      ASSERT_EQ(RefineCornersOnEdges(grey, refined, 6), 4) << "quiet zone " << quiet_zone << " view " << view;
+      const cv::Point2d centre = 0.25 * (cv::Point2d(truth[0]) + cv::Point2d(truth[1]) + cv::Point2d(truth[2]) +
+                                         cv::Point2d(truth[3]));
+      for (int k = 0; k < 4; ++k) {
+        const cv::Point2d out = cv::Point2d(truth[k]) - centre, error = cv::Point2d(refined[k]) - cv::Point2d(truth[k]);
+        radial += error.dot(out) / cv::norm(out);
+        errors.push_back(cv::norm(error));
+      }
+    }
+    radial /= static_cast<double>(errors.size());
+    std::nth_element(errors.begin(), errors.begin() + errors.size() / 2, errors.end());
+    const double median = errors[errors.size() / 2];
+    std::printf("edge fit from the true corners, 22-25 px, quiet zone %.2f cells: mean radial error %+.4f px, "
+                "median error %.4f px\n",
+                quiet_zone, radial, median);
+    EXPECT_LT(std::abs(radial), 0.035) << "quiet zone " << quiet_zone;
+    EXPECT_LT(median, 0.045) << "quiet zone " << quiet_zone;
+  }
 }
 
 // Sub-pixel refinement must improve on none. cv::cornerSubPix's default 5 px half window on markers
