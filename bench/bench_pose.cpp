@@ -13,9 +13,11 @@
 // cloud and fused poses, and the time per tag of the cloud step; --edge-background F first moves
 // that fraction of the cloud points each tag's pose uses, the outermost, 1 m further along their
 // rays (a wall behind the tag seen past its edge, as stereo matching fattens edges).
+// --pattern-fit-max-side N sets the detector's DetectorConfig::pattern_fit_max_side (default: the
+// default config's), so the covariances of corners from the edge fit alone (0) can be checked too.
 //
 //   bench_pose [--frames 1000] [--json FILE] [--csv FILE] [--seed 7] [--plane-fits ransac,legacy]
-//              [--edge-background 0]
+//              [--edge-background 0] [--pattern-fit-max-side N]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -142,6 +144,8 @@ int Main(int argc, char** argv) {
   std::string json, csv_path;
   std::vector<FitName> fits = ParseFits("ransac,legacy");
   double edge_background = 0.0;
+  DetectorConfig config;
+  config.default_side_length = 0.15;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string arg = argv[i];
     if (arg == "--frames") frames = std::stoi(argv[i + 1]);
@@ -150,13 +154,12 @@ int Main(int argc, char** argv) {
     else if (arg == "--seed") seed = static_cast<unsigned>(std::stoul(argv[i + 1]));
     else if (arg == "--plane-fits") fits = ParseFits(argv[i + 1]);
     else if (arg == "--edge-background") edge_background = std::stod(argv[i + 1]);
+    else if (arg == "--pattern-fit-max-side") config.pattern_fit_max_side = std::stoi(argv[i + 1]);
     else throw Error("unknown option " + arg);
   }
   const sim::Camera camera = sim::MakeCamera({1280, 720}, 65.0);
   CameraModel model = CameraModel::FromIntrinsics(camera.K, camera.dist);
   model.corner_noise = 0.0;  // lossless renders through their exact intrinsics
-  DetectorConfig config;
-  config.default_side_length = 0.15;
   const Detector detector(config);
   CloudPoseOptions cloud_options;
   cloud_options.depth_noise_per_m2 = 0.15 / (camera.K(0, 0) * 0.12);  // the ZED 2 the cloud is made with
@@ -168,7 +171,7 @@ int Main(int argc, char** argv) {
                       "plane_rms,fused,cloud_err_ray,cloud_err_lateral,sol0_rot_deg,sol1_rot_deg,ev_usable,ev_corners,ev_cloud,"
                       "ev_angle0,ev_angle1,ev_normal_sigma");
     for (const char* m : kMethodNames) std::fprintf(csv, ",%s_rot_deg,%s_t_err,%s_nees_t,%s_nees_r", m, m, m, m);
-    std::fprintf(csv, "\n");
+    std::fprintf(csv, ",pattern_fitted\n");
   }
   Bin bins[kBinCount];
   std::vector<std::vector<FitBin>> fit_bins(kBinCount, std::vector<FitBin>(fits.size()));
@@ -318,7 +321,7 @@ int Main(int argc, char** argv) {
         const double dt = poses[m] && poses[m]->HasPose() ? cv::norm(poses[m]->tvec - truth.tvec) : std::nan("");
         std::fprintf(csv, ",%.4f,%.5f,%.4f,%.4f", rot, dt, nees[m][0], nees[m][1]);
       }
-      std::fprintf(csv, "\n");
+      std::fprintf(csv, ",%d\n", found->pattern_fitted ? 1 : 0);
     }
   }
   if (csv) std::fclose(csv);

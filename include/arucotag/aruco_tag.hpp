@@ -85,6 +85,10 @@ struct ArucoTag {
   /// Corners as cv::aruco returns them: top-left, top-right, bottom-right, bottom-left in the
   /// marker's own frame (so rotated markers have rotated corner lists), px.
   std::array<cv::Point2f, 4> corners{};
+  /// True when Detect's whole-pattern fit placed the corners (DetectorConfig::pattern_fit_max_side),
+  /// about twice as accurate as the edge fit alone: EstimatePoseFromPNP assumes the corner noise of
+  /// the refinement that placed them.
+  bool pattern_fitted = false;
   double side_length = 0.15;  ///< side of the black square used for the pose (m)
 
   PoseSource pose_source = PoseSource::kNone;  ///< which measurement the pose below comes from

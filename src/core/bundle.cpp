@@ -451,9 +451,11 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
             [](const auto& a, const auto& b) { return a.second < b.second; });
   if (!solver.Evaluate(chosen)) return result;
   const int coordinates = chosen.jacobian.rows;
-  double side_px = 0.0;
+  // The members' corner noise priors pooled: each sighting gives four corners.
+  double prior_variance = 0.0;
   for (const auto& [s, m] : chosen.matches) {
-    side_px += sightings[s].side_px / chosen.matches.size();
+    const double prior = internal::CornerSigmaPrior(sightings[s].side_px, tags[sightings[s].tag].pattern_fitted);
+    prior_variance += prior * prior / chosen.matches.size();
     result.member_ids.push_back(bundle.members[m].id);
     result.members.push_back(m);
     result.tags.push_back(sightings[s].tag);
@@ -462,7 +464,8 @@ BundlePose EstimateBundlePose(const CameraModel& camera, const MarkerBundle& bun
   result.rvec = chosen.rvec;
   result.tvec = chosen.tvec;
   result.reprojection_error = std::sqrt(chosen.sum_sq / coordinates);
-  result.corner_sigma = internal::PooledCornerSigma(chosen.sum_sq, coordinates - 6.0, side_px, camera.corner_noise);
+  result.corner_sigma = internal::PooledCornerSigma(chosen.sum_sq, coordinates - 6.0, std::sqrt(prior_variance),
+                                                    camera.corner_noise);
   const auto covariance = [&](const Hypothesis& h) {
     const cv::Mat jtj = h.jacobian.t() * h.jacobian;
     return internal::CovarianceFromNormalMatrix(cv::Matx66d(jtj.ptr<double>()), result.corner_sigma);

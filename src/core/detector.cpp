@@ -436,6 +436,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
         fits[i].blur = checked[i].blur;
         for (int c = 0; c < 4; ++c) fits[i].offset[c] = checked[i].corners[c] - tags[i].corners[c];
         tags[i].corners = checked[i].corners;
+        tags[i].pattern_fitted = true;
         fitted[i] = 1;
       }
       // The other small markers, smallest first, up to pattern_fit_max_markers of them.
@@ -480,6 +481,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
             tag.corners = edges;
             continue;
           }
+          tag.pattern_fitted = true;
           fits[i].blur = variance;
           for (int c = 0; c < 4; ++c) fits[i].offset[c] = tag.corners[c] - edges[c];
         }

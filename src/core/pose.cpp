@@ -153,6 +153,18 @@ constexpr double kCornerSigmaPriorSide = 40.0;
 constexpr double kCornerSigmaPriorGrowth = 0.75;
 constexpr double kCornerSigmaSmallSide = 15.0;
 constexpr double kCornerSigmaPriorDof = 2.0;
+// Corners from the edge fit alone (a marker past pattern_fit_max_side or pattern_fit_max_markers, or
+// the pattern fit off or refused): the prior above down to kEdgeCornerSigmaSide, growing as
+// side^-1.5 below it. The prior above had been calibrated with every marker under 56 px
+// pattern-fitted; put on edge-fitted ones of 15-40 px it read mean NEES 6-60 (bench_pose
+// --pattern-fit-max-side 0 --csv, 807 markers: PnP translation / rotation per side of 0-15, 15-20,
+// 20-25, 25-30, 30-40, 40-56 px 3.8/2.1, 5.1/4.0, 2.5/2.2, 3.2/2.7, 1.9/3.3, 3.4/3.0 with this one;
+// the edge fit's median corner error is about twice the pattern fit's from 30 px up, four times under
+// 20 px). Its error is heavy-tailed: the NEES medians are 0.3-1 under 40 px (2.37 for calibrated
+// noise), most of the mean coming from blurred (0.7-1 px: mean 4.9 against 0.6 under 0.25 px) and
+// oblique markers, which the corners alone do not tell apart.
+constexpr double kEdgeCornerSigmaSide = 56.0;
+constexpr double kEdgeCornerSigmaGrowth = 1.5;
 // A rival planar solution this unlikely (its posterior weight) leaves the pick's covariance as it is.
 constexpr double kNegligibleRivalWeight = 1e-6;
 // The rival's likelihood is judged under this multiple of the corner noise the covariance assumes
@@ -256,10 +268,18 @@ bool ProjectWithJacobian(const CameraModel& camera, const std::vector<cv::Point3
   return cv::checkRange(jacobian);
 }
 
-double PooledCornerSigma(double sum_sq, double residual_dof, double side_px, double camera_noise) {
-  const double prior_sigma =
-      kCornerSigmaPrior * std::pow(std::max(1.0, side_px / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth) *
-      std::pow(std::max(1.0, kCornerSigmaSmallSide / std::max(side_px, 1.0)), 2);
+double CornerSigmaPrior(double side_px, bool pattern_fitted) {
+  const double side = std::max(side_px, 1.0);
+  const auto large = [](double s) {
+    return kCornerSigmaPrior * std::pow(std::max(1.0, s / kCornerSigmaPriorSide), kCornerSigmaPriorGrowth);
+  };
+  if (!pattern_fitted && side < kEdgeCornerSigmaSide) {
+    return large(kEdgeCornerSigmaSide) * std::pow(kEdgeCornerSigmaSide / side, kEdgeCornerSigmaGrowth);
+  }
+  return large(side) * std::pow(std::max(1.0, kCornerSigmaSmallSide / side), 2);
+}
+
+double PooledCornerSigma(double sum_sq, double residual_dof, double prior_sigma, double camera_noise) {
   const double prior = kCornerSigmaPriorDof * (prior_sigma * prior_sigma + camera_noise * camera_noise);
   return std::sqrt((prior + sum_sq) / (kCornerSigmaPriorDof + residual_dof));
 }
@@ -389,7 +409,8 @@ bool EstimatePoseFromPNP(const CameraModel& camera, ArucoTag& tag) {
   // unknowns) pooled with the prior. The second solution's residual is its own misfit, not noise.
   double side_px = 0.0;
   for (size_t k = 0; k < image.size(); ++k) side_px += 0.25 * cv::norm(image[(k + 1) % image.size()] - image[k]);
-  result.corner_sigma = internal::PooledCornerSigma(pair[0].SumSq(), 2.0, side_px, camera.corner_noise);
+  result.corner_sigma = internal::PooledCornerSigma(pair[0].SumSq(), 2.0, internal::CornerSigmaPrior(side_px, tag.pattern_fitted),
+                                                    camera.corner_noise);
   for (size_t i = 0; i < pair.size() && i < 2; ++i) {
     result.rvec[i] = pair[i].rvec;
     result.tvec[i] = pair[i].tvec;

@@ -24,11 +24,15 @@ double RotationAngle(const cv::Vec3d& a, const cv::Vec3d& b);
 bool ProjectWithJacobian(const CameraModel& camera, const std::vector<cv::Point3d>& object, const cv::Vec3d& rvec,
                          const cv::Vec3d& tvec, std::vector<cv::Point2d>& projected, cv::Mat& jacobian);
 
+/// The corner noise (image px per coordinate) the renders calibrated for a marker of mean side
+/// `side_px` (image px) whose corners the whole-pattern fit placed (`pattern_fitted`) or the edge fit
+/// alone.
+double CornerSigmaPrior(double side_px, bool pattern_fitted);
+
 /// Corner noise (image px per coordinate) from a least-squares residual `sum_sq` with
-/// `residual_dof` degrees of freedom, pooled with a prior: the corner noise the renders calibrated
-/// for markers of mean side `side_px` (image px) and the camera's own `camera_noise` (px,
-/// CameraModel::corner_noise), added in quadrature.
-double PooledCornerSigma(double sum_sq, double residual_dof, double side_px, double camera_noise);
+/// `residual_dof` degrees of freedom, pooled with a prior: `prior_sigma` (CornerSigmaPrior) and the
+/// camera's own `camera_noise` (px, CameraModel::corner_noise), added in quadrature.
+double PooledCornerSigma(double sum_sq, double residual_dof, double prior_sigma, double camera_noise);
 
 /// sigma^2 (J^T J)^-1 from the normal matrix J^T J; unknown when it is singular.
 PoseCovariance CovarianceFromNormalMatrix(const cv::Matx66d& jtj, double sigma);

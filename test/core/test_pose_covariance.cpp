@@ -82,14 +82,14 @@ cv::Mat NoisyView(const sim::Camera& camera, const sim::Marker& marker, int seed
 }
 
 // Rendered frames, 1-15 m, 0-70 degrees, blur and sensor noise, the whole pipeline (detector corners,
-// PnP, the covariance with its estimated corner noise): the mean NEES of translation and of rotation
-// lies within [0.5, 2] x 3 per range bin. Flips (rotation error over 10 degrees) are counted apart:
-// the covariance spans the other planar solution only as far as the corners' likelihood of it.
-TEST(PoseCovariance, PnpNeesPerRangeBin) {
+// PnP, the covariance with its estimated corner noise) with `config`: the mean NEES of translation
+// and of rotation lies within [min_nees, 6] per range bin (3 is calibrated). Flips (rotation error
+// over 10 degrees) are counted apart: the covariance spans the other planar solution only as far as
+// the corners' likelihood of it; at most `max_flip_share` of the markers found in a bin.
+void CheckPnpNeesPerRangeBin(DetectorConfig config, double min_nees, double max_flip_share) {
   const sim::Camera camera = test::RoverCamera();
   const CameraModel model = test::ToModel(camera);
   const double side = 0.2;
-  DetectorConfig config;
   config.default_side_length = side;
   const Detector detector(config);
   const double edges[] = {1.0, 3.0, 6.0, 10.0, 15.0};
@@ -129,12 +129,28 @@ TEST(PoseCovariance, PnpNeesPerRangeBin) {
     const double t = bin.nees_t / bin.used, r = bin.nees_r / bin.used;
     std::printf("| %.0f-%.0f | %d | %d | %d | %.2f | %.2f |\n", edges[b], edges[b + 1], bin.frames, bin.found,
                 bin.flipped, t, r);
-    EXPECT_GE(t, 1.5) << edges[b] << "-" << edges[b + 1] << " m";
+    EXPECT_GE(t, min_nees) << edges[b] << "-" << edges[b + 1] << " m";
     EXPECT_LE(t, 6.0) << edges[b] << "-" << edges[b + 1] << " m";
-    EXPECT_GE(r, 1.5) << edges[b] << "-" << edges[b + 1] << " m";
+    EXPECT_GE(r, min_nees) << edges[b] << "-" << edges[b + 1] << " m";
     EXPECT_LE(r, 6.0) << edges[b] << "-" << edges[b + 1] << " m";
-    EXPECT_LE(bin.flipped, bin.found / 10) << "flips are rare outside the far bin";
+    EXPECT_LE(bin.flipped, static_cast<int>(max_flip_share * bin.found)) << "flips are rare";
   }
+}
+
+TEST(PoseCovariance, PnpNeesPerRangeBin) { CheckPnpNeesPerRangeBin(DetectorConfig(), 1.5, 0.1); }
+
+// The same with the edge fit's corners alone (pattern_fit_max_side 0: what markers past
+// pattern_fit_max_side or pattern_fit_max_markers get): their covariance assumes the edge fit's larger
+// corner noise (ArucoTag::pattern_fitted false). With the pattern fit's noise assumed instead the far
+// bin's mean NEES was about 25 (the markers are 13-20 px there). The edge fit's error on small
+// markers is heavy-tailed (most far better than the prior, the blurred and oblique ones worse):
+// calibrated on bench_pose's markers, the prior is conservative on these (mean NEES about 1 at 6-10 m,
+// 20-33 px), which is allowed, an overconfident one is not. Flips are more common without the
+// pattern fit (bench_pose: 25 of 264 PnP poses at 6-10 m, 79 of 259 at 10-15 m, against 0 and 20).
+TEST(PoseCovariance, EdgeFitNeesPerRangeBin) {
+  DetectorConfig config;
+  config.pattern_fit_max_side = 0;
+  CheckPnpNeesPerRangeBin(config, 0.5, 0.2);
 }
 
 // The sample recording's lesson (its 7 m stake's track was refused by the tracker's gate): frames
