@@ -92,7 +92,8 @@ struct DetectorConfig {
   /// lens bends to the edge fit. ArucoTag::pattern_fitted tells which markers it placed. 40 would
   /// save a sixth of Detect's instructions on 640x480 frames of five markers (callgrind), but on the
   /// sample recording's motion-blurred JPEG frames one post face's mean position NEES went to 6.6,
-  /// over the replay test's 6 (0.9-2.5 with the fit): renders flatter the edge fit.
+  /// over the replay test's 6 (0.9-2.5 with the fit, as that test records): renders flatter the
+  /// edge fit.
   int pattern_fit_max_side = 56;
   /// At most this many markers per frame get the pattern fit, the smallest first (they need it
   /// most): bounds the time a crowded frame (a calibration board, a wall of markers) adds. 0 = no
