@@ -283,7 +283,8 @@ void TimeRefinement(const Frame& frame, const Detections& d, const DetectorConfi
     ++r.edges;
     double perimeter = 0.0;
     for (int i = 0; i < 4; ++i) perimeter += cv::norm(corners[i] - corners[(i + 1) % 4]);
-    if (perimeter >= 4.0 * config.pattern_fit_max_side) continue;  // (the per-frame cap aside)
+    // What one fit costs: the per-frame cap and the sharp markers past pattern_fit_sharp_max_side aside.
+    if (perimeter >= 4.0 * config.pattern_fit_max_side) continue;
     const cv::Mat black = MarkerCells(dictionary, d.ids[t], config.marker_border_bits);
     const double p0 = WallMs();
     RefineCornersOnPattern(frame.grey, black, corners);

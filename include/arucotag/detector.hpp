@@ -89,12 +89,19 @@ struct DetectorConfig {
   /// up (0.018 against 0.010 px), four times under 20 px, where PnP poses flip without the fit
   /// (a 0.15 m marker at 6-15 m: 104 flips in 523 poses, against 20). 0 turns it off. The fit's
   /// model has straight edges: on a raw frame, Detect(frame, detector, lens) leaves the markers the
-  /// lens bends to the edge fit. ArucoTag::pattern_fitted tells which markers it placed. 40 would
-  /// save a sixth of Detect's instructions on 640x480 frames of five markers (callgrind), but on the
-  /// sample recording's motion-blurred JPEG frames one post face's mean position NEES went to 6.6,
-  /// over the replay test's 6 (0.9-2.5 with the fit, as that test records): renders flatter the
-  /// edge fit.
+  /// lens bends to the edge fit. ArucoTag::pattern_fitted tells which markers it placed. Markers of
+  /// pattern_fit_sharp_max_side or more get it only where their edges are blurred.
   int pattern_fit_max_side = 56;
+  /// With the pattern fit: markers from this side (px, 32-256) up to pattern_fit_max_side get the fit
+  /// only where their edges are blurred (a ramp variance across them of kSharpEdgeVariance px^2 or
+  /// more); sharp ones keep the edge fit's corners. At or above pattern_fit_max_side every marker
+  /// under that gets the fit. Measured at 40 (stop 51): a tenth of Detect's instructions off 720p
+  /// frames of tag36h11 markers and a sixth off 640x480 frames of five (callgrind), where renders
+  /// (0.5 px Gaussian, ramp variance 0.42-0.50 px^2) leave 40-56 px markers a median corner error of
+  /// 0.011-0.025 px with the edge fit alone. On the sample recording's motion-blurred jpeg frames
+  /// (0.67-1.24 px^2) the post faces keep the fit: there the edge fit alone took a face's position
+  /// NEES over the replay test's 6 (6.6 with every 40-56 px marker left to it).
+  int pattern_fit_sharp_max_side = 40;
   /// At most this many markers per frame get the pattern fit, the smallest first (they need it
   /// most): bounds the time a crowded frame (a calibration board, a wall of markers) adds. 0 = no
   /// limit. A small marker read by the second chance (see fast_path) keeps the pattern fit that
@@ -202,5 +209,10 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
 /// pattern fit's worst corner is off by about twice the bend, and does worse than the edge fit on
 /// half the markers from 0.04 px on.
 inline constexpr double kMaxPatternFitBend = 0.04;
+
+/// The ramp variance (px^2) across a marker's edges under which DetectorConfig::pattern_fit_sharp_max_side
+/// counts them sharp: between the renders' 0.42-0.50 (0.5 px Gaussian blur, pixel and bilinear
+/// reading included) and the sample recording's 0.67-1.24 (motion blur, jpeg).
+inline constexpr double kSharpEdgeVariance = 0.6;
 
 }  // namespace arucotag

@@ -149,6 +149,9 @@ void Validate(const DetectorConfig& c) {
   Require(c.full_search_interval >= 1, "full_search_interval", "must be >= 1 frame");
   Require(c.pattern_fit_max_side >= 0 && c.pattern_fit_max_side <= 256, "pattern_fit_max_side",
           "must be 0-256 px (0 turns the pattern fit off; larger markers need no pattern fit)");
+  Require(c.pattern_fit_sharp_max_side >= 32 && c.pattern_fit_sharp_max_side <= 256, "pattern_fit_sharp_max_side",
+          "must be 32-256 px (its edge blur measure reaches 2.5 px into the black border; at or above "
+          "pattern_fit_max_side every marker under that gets the fit)");
   Require(c.pattern_fit_max_markers >= 0, "pattern_fit_max_markers", "must be >= 0 (0 = no limit)");
   Require(c.threads >= 0, "threads", "must be >= 0 (0 = OpenCV's thread count)");
   Require(Finite(c.default_side_length) && c.default_side_length > 0.0, "default_side_length", "must be > 0 m");
@@ -446,12 +449,20 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
         if (!fitted[i] && side < config.pattern_fit_max_side) small.emplace_back(side, i);
       }
       std::sort(small.begin(), small.end());
-      // The smallest the lens leaves straight, up to pattern_fit_max_markers of them.
+      // Whether a marker of pattern_fit_sharp_max_side or more has sharp edges, which leave it to the
+      // edge fit (unmeasured edges keep the fit).
+      const auto sharp = [&](const std::pair<float, size_t>& entry) {
+        if (entry.first < config.pattern_fit_sharp_max_side) return false;
+        const double ramp = internal::EdgeBlurVariance(grey, tags[entry.second].corners);
+        return ramp >= 0.0 && ramp < kSharpEdgeVariance;
+      };
+      // The smallest the lens leaves straight and that are not sharp past pattern_fit_sharp_max_side, up to
+      // pattern_fit_max_markers of them (asked in that order: the count bounds the questions too).
       const size_t most = config.pattern_fit_max_markers > 0 ? static_cast<size_t>(config.pattern_fit_max_markers)
                                                              : small.size();
       size_t kept = 0;
       for (size_t k = 0; k < small.size() && kept < most; ++k) {
-        if (straight(small[k].second)) small[kept++] = small[k];
+        if (straight(small[k].second) && !sharp(small[k])) small[kept++] = small[k];
       }
       small.resize(kept);
       // A carried marker left out of the pattern fit this frame (grown past pattern_fit_max_side, or

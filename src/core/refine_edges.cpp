@@ -467,6 +467,49 @@ bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>
   return within || keep_check_pass;
 }
 
+double EdgeBlurVariance(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners) {
+  CV_Assert(grey.type() == CV_8UC1);
+  // Six profiles across the middle half of each edge, a quarter pixel between samples.
+  constexpr int kPerEdge = 6;
+  constexpr double kStep = 0.25;
+  constexpr int kHalf = static_cast<int>(kBlurProfileReach / kStep + 0.5);
+  double area = 0.0;
+  for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
+  const double sign = area > 0 ? 1.0 : -1.0;
+  std::array<double, 4 * kPerEdge> variances;
+  int count = 0;
+  for (int e = 0; e < 4; ++e) {
+    const cv::Point2d a(corners[e]), b(corners[(e + 1) % 4]);
+    const double length = cv::norm(b - a);
+    if (!(length > 0.0)) continue;
+    const cv::Point2d d = (b - a) / length, outward = cv::Point2d(d.y, -d.x) * sign * kStep;
+    for (int k = 0; k < kPerEdge; ++k) {
+      const cv::Point2d base = a + (b - a) * (0.25 + 0.5 * k / (kPerEdge - 1));
+      const cv::Point2d first = base - outward * kHalf, last = base + outward * kHalf;
+      if (!(std::min({first.x, last.x, first.y, last.y}) >= 0.0 && std::max(first.x, last.x) <= grey.cols - 2.0 &&
+            std::max(first.y, last.y) <= grey.rows - 2.0)) {
+        continue;
+      }
+      // The ramp's moments: its derivative, sample to sample, as a distribution over the offset.
+      double before = SampleInside(grey, first.x, first.y), rise = 0.0, moment = 0.0, second = 0.0;
+      for (int i = 1; i <= 2 * kHalf; ++i) {
+        const cv::Point2d at = first + outward * i;
+        const double value = SampleInside(grey, at.x, at.y), slope = value - before, x = (i - 0.5 - kHalf) * kStep;
+        rise += slope;
+        moment += slope * x;
+        second += slope * x * x;
+        before = value;
+      }
+      if (rise < 10.0) continue;  // too little contrast to measure a ramp
+      const double mean = moment / rise;
+      variances[count++] = second / rise - mean * mean;
+    }
+  }
+  if (count < 4) return -1.0;
+  std::nth_element(variances.begin(), variances.begin() + count / 2, variances.begin() + count);
+  return variances[count / 2];
+}
+
 }  // namespace internal
 
 }  // namespace arucotag

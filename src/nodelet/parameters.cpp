@@ -33,6 +33,7 @@ const Field<DetectorConfig, int> kDetectorInts[] = {
     ARUCOTAG_FIELD(DetectorConfig, corner_refinement_max_iterations),
     ARUCOTAG_FIELD(DetectorConfig, full_search_interval),
     ARUCOTAG_FIELD(DetectorConfig, pattern_fit_max_side),
+    ARUCOTAG_FIELD(DetectorConfig, pattern_fit_sharp_max_side),
     ARUCOTAG_FIELD(DetectorConfig, pattern_fit_max_markers),
     ARUCOTAG_FIELD(DetectorConfig, threads),
 };

@@ -15,6 +15,8 @@
 #include <arucotag/detector.hpp>
 #include <arucotag/refine.hpp>
 
+#include "geometry.hpp"
+#include "refine_edges.hpp"
 #include "refine_pattern.hpp"
 
 #include "scene.hpp"
@@ -253,6 +255,112 @@ TEST(PatternFit, CappedPerFrameSmallestFirst) {
   EXPECT_THROW(Detector{capped}, Error);
 }
 
+// Six 0.15 m markers 40-56 px wide (2.9-3.4 m, tilted 22 degrees), rendered with `options`, and their true corners
+// by id.
+struct MidSizeScene {
+  cv::Mat grey;
+  std::vector<std::array<cv::Point2f, 4>> truth;
+};
+MidSizeScene RenderMidSizeMarkers(const sim::RenderOptions& options) {
+  const sim::Camera camera = test::RoverCamera();
+  std::vector<sim::Marker> markers;
+  for (int i = 0; i < 6; ++i) {
+    const double range = 2.9 + 0.1 * i;
+    markers.push_back(sim::FacingCamera(i, 0.15, {(-0.25 + 0.1 * i) * range, 0.05 * range * (i % 2), range}, 20.0,
+                                        10.0, 15.0 * i));
+  }
+  MidSizeScene scene;
+  PreprocessFrame(sim::RenderScene(camera, markers, options), scene.grey);
+  for (const auto& m : markers) scene.truth.push_back(sim::ProjectCorners(camera, m));
+  return scene;
+}
+
+// The ramp across a marker's edges widens with blur: its variance grows by the blur's own (a Gaussian's
+// sigma squared, a motion blur's length squared / 12 across the edges it crosses), from 0.15-0.3 px^2
+// for an unblurred render (the pixel and the bilinear reading), with sharp and blurred either side of
+// kSharpEdgeVariance.
+TEST(PatternFit, EdgeBlurVarianceGrowsWithTheBlur) {
+  const auto measure = [](double sigma, double motion_px) {
+    sim::RenderOptions options;
+    options.blur_sigma = sigma;
+    options.motion_blur_px = motion_px;
+    options.motion_blur_angle_deg = 30.0;
+    options.noise_sigma = 2.0;
+    const MidSizeScene scene = RenderMidSizeMarkers(options);
+    std::vector<double> ramps;
+    for (const auto& truth : scene.truth) ramps.push_back(internal::EdgeBlurVariance(scene.grey, truth));
+    std::sort(ramps.begin(), ramps.end());
+    return ramps;
+  };
+  const auto none = measure(0.0, 0.0), sharp = measure(0.5, 0.0), soft = measure(1.0, 0.0), moving = measure(0.5, 4.0);
+  std::printf("  ramp variance (px^2), min / max of six: no blur %.3f / %.3f, 0.5 px %.3f / %.3f, 1 px %.3f / %.3f, "
+              "0.5 px and 4 px motion %.3f / %.3f\n",
+              none.front(), none.back(), sharp.front(), sharp.back(), soft.front(), soft.back(), moving.front(),
+              moving.back());
+  EXPECT_GT(none.front(), 0.1);
+  EXPECT_LT(sharp.back(), kSharpEdgeVariance);
+  EXPECT_GT(soft.front(), kSharpEdgeVariance);
+  EXPECT_GT(moving.front(), kSharpEdgeVariance);
+  // A Gaussian adds its variance: 1 - 0.25 px^2 between 1 px and 0.5 px.
+  for (size_t i = 0; i < sharp.size(); ++i) EXPECT_NEAR(soft[i] - sharp[i], 0.75, 0.2) << i;
+  // No contrast, no ramp to measure.
+  EXPECT_LT(internal::EdgeBlurVariance(cv::Mat(200, 200, CV_8UC1, cv::Scalar(128)),
+                                       {cv::Point2f(50, 50), cv::Point2f(150, 50), cv::Point2f(150, 150), cv::Point2f(50, 150)}),
+            0.0);
+}
+
+// From pattern_fit_sharp_max_side up, sharp markers keep the edge fit's corners (which are within the
+// corner target there) and blurred ones get the fit; at pattern_fit_max_side every one gets it.
+TEST(PatternFit, SharpMarkersPastTheSharpSideKeepTheEdgeFit) {
+  DetectorConfig config;
+  config.tracking = false;
+  DetectorConfig all = config;
+  all.pattern_fit_sharp_max_side = all.pattern_fit_max_side;
+  DetectorConfig edge_only = config;
+  edge_only.pattern_fit_max_side = 0;
+  for (const double sigma : {0.5, 1.0}) {
+    sim::RenderOptions options;
+    options.blur_sigma = sigma;
+    options.noise_sigma = 2.0;
+    const MidSizeScene scene = RenderMidSizeMarkers(options);
+    auto tags = Detect(scene.grey, Detector(config));
+    auto fitted = Detect(scene.grey, Detector(all));
+    auto edges = Detect(scene.grey, Detector(edge_only));
+    ASSERT_EQ(tags.size(), 6u) << sigma;
+    ASSERT_EQ(fitted.size(), 6u) << sigma;
+    ASSERT_EQ(edges.size(), 6u) << sigma;
+    const auto by_id = [](const ArucoTag& a, const ArucoTag& b) { return a.id < b.id; };
+    for (auto* list : {&tags, &fitted, &edges}) std::sort(list->begin(), list->end(), by_id);
+    std::vector<double> errors;
+    for (size_t i = 0; i < tags.size(); ++i) {
+      const double side = internal::MeanSide(tags[i].corners);
+      EXPECT_GE(side, config.pattern_fit_sharp_max_side) << i;
+      EXPECT_LT(side, config.pattern_fit_max_side) << i;
+      EXPECT_TRUE(fitted[i].pattern_fitted) << i;
+      EXPECT_FALSE(edges[i].pattern_fitted) << i;
+      if (sigma < 0.75) {
+        EXPECT_FALSE(tags[i].pattern_fitted) << i;
+        EXPECT_EQ(MaxError(tags[i].corners, edges[i].corners), 0.0) << i;
+      } else {
+        EXPECT_TRUE(tags[i].pattern_fitted) << i;
+        EXPECT_EQ(MaxError(tags[i].corners, fitted[i].corners), 0.0) << i;
+      }
+      for (int c = 0; c < 4; ++c) {
+        errors.push_back(cv::norm(cv::Point2d(tags[i].corners[c]) - cv::Point2d(scene.truth[tags[i].id][c])));
+      }
+    }
+    std::sort(errors.begin(), errors.end());
+    std::printf("  blur %.1f px: corner error median %.4f px, worst %.4f px\n", sigma, errors[errors.size() / 2],
+                errors.back());
+    EXPECT_LE(errors[errors.size() / 2], 0.03) << sigma;
+    EXPECT_LE(errors.back(), 0.2) << sigma;
+  }
+  config.pattern_fit_sharp_max_side = 31;
+  EXPECT_THROW(Detector{config}, Error);
+  config.pattern_fit_sharp_max_side = 257;
+  EXPECT_THROW(Detector{config}, Error);
+}
+
 // Frames through a wide lens (640x480, 90 degrees, k1 -0.1), `frames` of them with up to eight
 // markers of `min_px`-`max_px` each, tilted up to 30 degrees, anywhere in the frame (the lens bends
 // edges most towards the corners), and their true corners.
@@ -317,6 +425,8 @@ TEST(PatternFit, MarkersTheLensBendsKeepTheEdgeFit) {
   const CameraModel lens = CameraModel::FromIntrinsics(scene.camera.K, scene.camera.dist);
   DetectorConfig config;
   config.tracking = false;
+  // Every marker of the scene gets the fit, sharp or not (these renders are sharp).
+  config.pattern_fit_sharp_max_side = config.pattern_fit_max_side;
   const Detector detector(config);
   DetectorConfig edge_config = config;
   edge_config.pattern_fit_max_side = 0;

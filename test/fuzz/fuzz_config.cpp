@@ -103,7 +103,7 @@ void Values(FuzzInput& in) {
                      &c.adaptive_thresh_win_size_step, &c.min_distance_to_border, &c.marker_border_bits,
                      &c.perspective_remove_pixel_per_cell, &c.corner_refinement_win_size,
                      &c.corner_refinement_max_iterations, &c.full_search_interval, &c.pattern_fit_max_side,
-                     &c.pattern_fit_max_markers}) {
+                     &c.pattern_fit_sharp_max_side, &c.pattern_fit_max_markers}) {
     integer(*value);
   }
   for (double* value : {&c.adaptive_thresh_constant, &c.min_marker_perimeter_rate, &c.max_marker_perimeter_rate,
