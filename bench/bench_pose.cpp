@@ -14,10 +14,11 @@
 // that fraction of the cloud points each tag's pose uses, the outermost, 1 m further along their
 // rays (a wall behind the tag seen past its edge, as stereo matching fattens edges).
 // --pattern-fit-max-side N sets the detector's DetectorConfig::pattern_fit_max_side (default: the
-// default config's), so the covariances of corners from the edge fit alone (0) can be checked too.
+// default config's), so the covariances of corners from the edge fit alone (0) can be checked too;
+// --pattern-fit-sharp-max-side N its pattern_fit_sharp_max_side.
 //
 //   bench_pose [--frames 1000] [--json FILE] [--csv FILE] [--seed 7] [--plane-fits ransac,legacy]
-//              [--edge-background 0] [--pattern-fit-max-side N]
+//              [--edge-background 0] [--pattern-fit-max-side N] [--pattern-fit-sharp-max-side N]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -155,6 +156,7 @@ int Main(int argc, char** argv) {
     else if (arg == "--plane-fits") fits = ParseFits(argv[i + 1]);
     else if (arg == "--edge-background") edge_background = std::stod(argv[i + 1]);
     else if (arg == "--pattern-fit-max-side") config.pattern_fit_max_side = std::stoi(argv[i + 1]);
+    else if (arg == "--pattern-fit-sharp-max-side") config.pattern_fit_sharp_max_side = std::stoi(argv[i + 1]);
     else throw Error("unknown option " + arg);
   }
   const sim::Camera camera = sim::MakeCamera({1280, 720}, 65.0);
