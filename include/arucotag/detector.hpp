@@ -96,8 +96,8 @@ struct DetectorConfig {
   /// only where their edges are blurred (a ramp variance across them of kSharpEdgeVariance px^2 or
   /// more); sharp ones keep the edge fit's corners. At or above pattern_fit_max_side every marker
   /// under that gets the fit. Measured at 40 (stop 51): a tenth of Detect's instructions off 720p
-  /// frames of tag36h11 markers and a sixth off 640x480 frames of five (callgrind), where renders
-  /// (0.5 px Gaussian, ramp variance 0.42-0.50 px^2) leave 40-56 px markers a median corner error of
+  /// frames of tag36h11 markers and a sixth off 640x480 frames of five (callgrind; 8-9 % of the time), where renders
+  /// (0.5 px Gaussian, ramp variance 0.39-0.50 px^2) leave 40-56 px markers a median corner error of
   /// 0.011-0.025 px with the edge fit alone. On the sample recording's motion-blurred jpeg frames
   /// (0.67-1.24 px^2) the post faces keep the fit: there the edge fit alone took a face's position
   /// NEES over the replay test's 6 (6.6 with every 40-56 px marker left to it).
@@ -211,7 +211,7 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
 inline constexpr double kMaxPatternFitBend = 0.04;
 
 /// The ramp variance (px^2) across a marker's edges under which DetectorConfig::pattern_fit_sharp_max_side
-/// counts them sharp: between the renders' 0.42-0.50 (0.5 px Gaussian blur, pixel and bilinear
+/// counts them sharp: between the renders' 0.39-0.50 (0.5 px Gaussian blur, pixel and bilinear
 /// reading included) and the sample recording's 0.67-1.24 (motion blur, jpeg).
 inline constexpr double kSharpEdgeVariance = 0.6;
 

@@ -29,7 +29,7 @@ bool RefineCornersOnEdgesSettled(const cv::Mat& grey, std::array<cv::Point2f, 4>
 /// side, less than the black border: a marker of 32 px has 3.6 px of it with the 9 cells of a 7x7
 /// dictionary, where DetectorConfig::pattern_fit_sharp_max_side's floor lies). It counts the pixel's own
 /// width and the bilinear reading's, so a sharp edge reads about 0.3-0.5 px^2: renders with a 0.5 px
-/// Gaussian 0.42-0.50, the sample recording's jpeg frames with motion blur 0.67-1.24, the distant
+/// Gaussian 0.39-0.50, the sample recording's jpeg frames with motion blur 0.67-1.24, the distant
 /// set's 0.8 px blur 0.82-0.84. Negative when fewer than four profiles had any contrast.
 inline constexpr double kBlurProfileReach = 2.5;
 double EdgeBlurVariance(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners);

@@ -304,9 +304,9 @@ TEST(PatternFit, EdgeBlurVarianceGrowsWithTheBlur) {
   // A Gaussian adds its variance: 1 - 0.25 px^2 between 1 px and 0.5 px.
   for (size_t i = 0; i < sharp.size(); ++i) EXPECT_NEAR(soft[i] - sharp[i], 0.75, 0.2) << i;
   // No contrast, no ramp to measure.
-  EXPECT_LT(internal::EdgeBlurVariance(cv::Mat(200, 200, CV_8UC1, cv::Scalar(128)),
-                                       {cv::Point2f(50, 50), cv::Point2f(150, 50), cv::Point2f(150, 150), cv::Point2f(50, 150)}),
-            0.0);
+  const std::array<cv::Point2f, 4> square = {cv::Point2f(50, 50), cv::Point2f(150, 50), cv::Point2f(150, 150),
+                                              cv::Point2f(50, 150)};
+  EXPECT_LT(internal::EdgeBlurVariance(cv::Mat(200, 200, CV_8UC1, cv::Scalar(128)), square), 0.0);
 }
 
 // From pattern_fit_sharp_max_side up, sharp markers keep the edge fit's corners (which are within the
