@@ -96,6 +96,7 @@ ArucoTagMsg ToMessage(const ArucoTag& tag) {
   msg.id = tag.id;
   for (size_t i = 0; i < tag.corners.size(); ++i) msg.corners[i] = ToPoint(tag.corners[i]);
   msg.center = ToPoint(FindTagCenter(tag));
+  msg.pattern_fitted = tag.pattern_fitted;
   msg.side_length = tag.side_length;
   msg.pose_source = static_cast<uint8_t>(tag.pose_source);
   if (tag.HasPose()) {

@@ -1,4 +1,4 @@
-// ToMessage's covariance and orientation flag, without a master.
+// ToMessage's covariance, orientation and pattern-fit flags, without a master.
 #include <cmath>
 
 #include <gtest/gtest.h>
@@ -32,6 +32,10 @@ TEST(ToMessage, CovarianceInTheOpticalFrameIsTheCoresRowMajor) {
   for (int i = 0; i < 36; ++i) EXPECT_DOUBLE_EQ(msg.covariance[i], tag.covariance.val[i]) << i;
   EXPECT_DOUBLE_EQ(msg.covariance[2 * 6 + 3], 5e-6);
   EXPECT_TRUE(msg.orientation_measured);
+  EXPECT_FALSE(msg.pattern_fitted);
+  ArucoTag fitted = tag;
+  fitted.pattern_fitted = true;
+  EXPECT_TRUE(ToMessage(fitted).pattern_fitted);
 
   ArucoTag none;
   const ArucoTagMsg empty = ToMessage(none);
