@@ -55,6 +55,20 @@ struct Line {
 constexpr double kMinReach = 1.2, kMaxReach = 3.0, kReachShareOfBorder = 0.8;
 double Reach(double border) { return std::clamp(kReachShareOfBorder * border, kMinReach, kMaxReach); }
 
+// The quad's winding, +1 or -1: what turns the right-hand normal of each edge outwards, whatever the
+// corners' order.
+double WindingSign(const std::array<cv::Point2f, 4>& corners) {
+  double area = 0.0;
+  for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
+  return area > 0 ? 1.0 : -1.0;
+}
+
+// Whether a profile from `a` to `b` lies where SampleInside may read all of it (false for NaN ends).
+bool ProfileInside(const cv::Mat& grey, const cv::Point2d& a, const cv::Point2d& b) {
+  return std::min({a.x, b.x, a.y, b.y}) >= 0.0 && std::max(a.x, b.x) <= grey.cols - 2.0 &&
+         std::max(a.y, b.y) <= grey.rows - 2.0;
+}
+
 // A corner's interior angle, by its cosine and sine (from the edges' dot and cross products: no
 // trigonometric function to call, eight a pass).
 struct Angle {
@@ -242,10 +256,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   for (int k = 0; k < count; ++k) {
     const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
     const cv::Point2d a = base - outward * (half * step), b = base + outward * (half * step);
-    if (std::min({a.x, b.x, a.y, b.y}) < 0.0 || std::max(a.x, b.x) > grey.cols - 2.0 ||
-        std::max(a.y, b.y) > grey.rows - 2.0) {
-      continue;
-    }
+    if (!ProfileInside(grey, a, b)) continue;
     double* const profile = profiles[read].data();
     profile[0] = internal::SampleInside(grey, a.x, a.y);
     profile[samples - 1] = internal::SampleInside(grey, b.x, b.y);
@@ -325,9 +336,7 @@ namespace {
 int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cells,
                int profile_count = kProfilesPerEdge) {
   // Orientation of the quad, so outward normals point away from the marker whatever the winding.
-  double area = 0.0;
-  for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
-  const double sign = area > 0 ? 1.0 : -1.0;
+  const double sign = WindingSign(corners);
   std::array<cv::Point2d, 4> c;
   for (int i = 0; i < 4; ++i) c[i] = cv::Point2d(corners[i]);
   std::array<Angle, 4> angle;
@@ -473,9 +482,7 @@ double EdgeBlurVariance(const cv::Mat& grey, const std::array<cv::Point2f, 4>& c
   constexpr int kPerEdge = 6;
   constexpr double kStep = 0.25;
   constexpr int kHalf = static_cast<int>(kBlurProfileReach / kStep + 0.5);
-  double area = 0.0;
-  for (int i = 0; i < 4; ++i) area += cv::Point2d(corners[i]).cross(cv::Point2d(corners[(i + 1) % 4]));
-  const double sign = area > 0 ? 1.0 : -1.0;
+  const double sign = WindingSign(corners);
   std::array<double, 4 * kPerEdge> variances;
   int count = 0;
   for (int e = 0; e < 4; ++e) {
@@ -486,10 +493,7 @@ double EdgeBlurVariance(const cv::Mat& grey, const std::array<cv::Point2f, 4>& c
     for (int k = 0; k < kPerEdge; ++k) {
       const cv::Point2d base = a + (b - a) * (0.25 + 0.5 * k / (kPerEdge - 1));
       const cv::Point2d first = base - outward * kHalf, last = base + outward * kHalf;
-      if (!(std::min({first.x, last.x, first.y, last.y}) >= 0.0 && std::max(first.x, last.x) <= grey.cols - 2.0 &&
-            std::max(first.y, last.y) <= grey.rows - 2.0)) {
-        continue;
-      }
+      if (!ProfileInside(grey, first, last)) continue;
       // The ramp's moments: its derivative, sample to sample, as a distribution over the offset.
       double before = SampleInside(grey, first.x, first.y), rise = 0.0, moment = 0.0, second = 0.0;
       for (int i = 1; i <= 2 * kHalf; ++i) {
