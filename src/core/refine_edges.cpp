@@ -22,11 +22,15 @@ constexpr double kPlateauBorder = 5.0;
 constexpr double kFitLength = 20.0;
 // Profiles across each fitted stretch: beyond this the line barely improves and time grows.
 constexpr int kProfilesPerEdge = 16;
-// Profiles in a pass that two more passes follow (small markers' first of three): it only brings the
-// corners near, where the last two passes place them. Measured (bench_detect, every set): the same
-// recall, default corner medians and p95s within 0.001 px, 4.6 % fewer instructions in Detect on
-// 640x480 frames of 50 markers (3.4 % on 720p); half the profiles in every pass but the last saved
-// 8.8 %, but 640x480/50's median went 0.040 -> 0.041 px and p95 0.171 -> 0.174.
+// Profiles in the first pass of two or three (a nearing pass): it only brings the corners near, where
+// the passes after it place them. Measured (bench_detect, every set), as the first of a small marker's
+// three: the same recall, default corner medians and p95s within 0.001 px, 4.6 % fewer instructions
+// in Detect on 640x480 frames of 50 markers (3.4 % on 720p); half the profiles in every pass but the
+// last saved 8.8 %, but 640x480/50's median went 0.040 -> 0.041 px and p95 0.171 -> 0.174. As the
+// first of a larger marker's two as well (stop 52): the same markers on every bench set, corner medians
+// within 0.002 px (none higher), p95 within 0.002 px; callgrind of Detect 640x480/5 36.65 -> 34.81 M,
+// 720p/20 108.35 -> 102.91 M, 1080p/50 216.01 -> 206.09 M, no set more; edge fit alone through a lens (k1 -0.1 to -0.3,
+// 90-120 degrees, 60-300 px markers): the same markers found, corner medians within 0.003 px.
 constexpr int kNearingProfiles = 8;
 // Samples across a profile, at most: 3 px each side at 0.5 px steps, or under 2 px at 0.25 px.
 constexpr int kMaxProfileSamples = 17;
@@ -365,7 +369,7 @@ int RefineOnce(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int cel
     // from 1.3 to 0.6 px). Longer edges are fitted next to each corner over kFitLength: lens
     // distortion bends long edges.
     const double border = std::min(border_a, border_b);
-    // A nearing pass (fewer profiles; two full passes follow) fits every edge once, between both
+    // A nearing pass (fewer profiles; one or two full passes follow) fits every edge once, between both
     // corners' clearances: it only has to bring the corners near, and a line over the whole edge does
     // (bench_detect, every set: the same ids; 640x480/50 corner p95 0.170 -> 0.168 px, medians within
     // 0.0002 px; callgrind of Detect on 640x480/50 146.0 -> 143.5 M; the one-off lens harness of stop
@@ -430,7 +434,7 @@ int RefinePasses(const cv::Mat& grey, std::array<cv::Point2f, 4>& corners, int c
   if (passes <= 0) passes = 4.0 * internal::MeanSide(corners) < kSmallPerimeter ? 3 : 2;  // small markers start further off
   for (int pass = 0; pass < passes; ++pass) {
     before = corners;
-    const bool nearing = pass + 2 < passes;
+    const bool nearing = pass == 0 && passes > 1;
     moved = RefineOnce(grey, corners, cells, nearing ? kNearingProfiles : kProfilesPerEdge);
     if (settled > 0.0 && !nearing && moved == 4 && pass + 1 < passes && LargestMove(before, corners) <= settled) break;
   }
