@@ -27,10 +27,11 @@ constexpr int kProfilesPerEdge = 16;
 // three: the same recall, default corner medians and p95s within 0.001 px, 4.6 % fewer instructions
 // in Detect on 640x480 frames of 50 markers (3.4 % on 720p); half the profiles in every pass but the
 // last saved 8.8 %, but 640x480/50's median went 0.040 -> 0.041 px and p95 0.171 -> 0.174. As the
-// first of a larger marker's two as well (stop 52): the same markers on every bench set, corner medians
-// within 0.002 px (none higher), p95 within 0.002 px; callgrind of Detect 640x480/5 36.65 -> 34.81 M,
-// 720p/20 108.35 -> 102.91 M, 1080p/50 216.01 -> 206.09 M, no set more; edge fit alone through a lens (k1 -0.1 to -0.3,
-// 90-120 degrees, 60-300 px markers): the same markers found, corner medians within 0.003 px.
+// first of a larger marker's two as well (stop 52): the same markers on every bench set, corner
+// medians within 0.002 px (none higher), p95 within 0.002 px; callgrind of Detect 640x480/5 36.65 ->
+// 34.81 M, 720p/20 108.35 -> 102.91 M, 1080p/50 216.01 -> 206.09 M, no set more; edge fit alone
+// through a lens (k1 -0.1 to -0.3, 90-120 degrees, 60-300 px markers): the same markers found, corner
+// medians within 0.003 px.
 constexpr int kNearingProfiles = 8;
 // Samples across a profile, at most: 3 px each side at 0.5 px steps, or under 2 px at 0.25 px.
 constexpr int kMaxProfileSamples = 17;
