@@ -37,8 +37,8 @@ constexpr double kMinContrast = 20.0;
 // of a cell off mixes ink and paper in its cells, and a dim marker's contrast falls under
 // kMinContrast there (test_small_markers' dim tag36h11 renders read 17-23). The other framings are then
 // tried. test_small_markers' dim tag36h11 framings with one side far inside: 32 of 108 read when such
-// a first reading stopped there, 67 with this bound (66 with 18, 67 with 12-16, which give the dim
-// distant set 5-10 more cell estimates and no more markers).
+// a first reading stopped there, 67 with this bound; 66 with 18, 67 with 12-16 (15 and 16 give bench's
+// dim distant set 5 more cell estimates than this bound, and no more markers).
 constexpr double kMinMisframedContrast = 17.0;
 // A cell is read as white or black when it lies at least this fraction of the contrast from the
 // threshold; nearer, it is unknown (an erasure). A marker's cells fall into two clear groups, a
@@ -535,7 +535,7 @@ bool DecodeSmall(const cv::Mat& grey, const std::array<cv::Point2f, 4>& candidat
   // before it failed to read: the first that reads is the same, and on bench's dim distant set 32 of
   // the 44 misframed candidates read on a growth, before the edge fit and the quiet-zone profiles
   // would have been made. The quad itself is not read: a blurred square's contour lies inside its
-  // edges (kGrowPx). Read first, it read 1 of 133 markers; read after the growths, 3 candidates over
+  // edges (kGrowPx). Read first, 1 of its 133 readings read a marker; read after the growths, 3 over
   // bench's 19 sets and the real photos (kMaxMisframedQuiet's run), and without it the same markers
   // are found, their corners within 0.05 px, for 12 % fewer cell estimates. The first growth's
   // reading is the gate for the others.
