@@ -71,12 +71,13 @@ constexpr double kQuietRingCells = 0.6;
 // marker's quiet zone or the background the marker stands on around it: fitted there, that level
 // lies between the ink and the paper or not far past them. DecodeSmall's first reading (the contour
 // grown by its first step) passes a candidate on to the other framings only with that level within
-// this many contrasts of the cells' threshold. Measured over bench's 19 sets and the five real photos
-// of test/data (7 scales from 1 to 0.2, with and without a 0.8 px blur, 6 dictionaries): the 70 first
-// readings that another framing then read had it within -0.25..1.06; 2122 of the 4661 that read
-// nothing lie past this bound (their median 0.94: a chessboard square is a dark square on white too),
-// which spares them up to seven more cell estimates. A background brighter than the paper by half
-// the contrast, or darker than the ink by as much, is still within it.
+// this many contrasts of the cells' threshold. Measured over bench's 19 sets and test/data's six
+// images (its five real photos and a fuzz frame; 7 scales from 1 to 0.2, with and without a 0.8 px
+// blur, 6 dictionaries): the 70 first readings that another framing then read had it within
+// -0.25..1.06; 2122 of the 4661 that read nothing lie past this bound (their median 0.94: a
+// chessboard square is a dark square on white too), which spares them up to seven more cell
+// estimates. A background brighter than the paper by half the contrast, or darker than the ink by as
+// much, is still within it.
 constexpr double kMaxMisframedQuiet = 1.1;
 // Grid steps per cell when locating the black square inside a quiet-zone outline.
 constexpr int kProfileStepsPerCell = 8;
