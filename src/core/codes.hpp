@@ -10,7 +10,8 @@
 
 namespace arucotag::internal {
 
-/// Bits set in x (no popcnt instruction in the x86-64 baseline this is built for).
+/// Bits set in x (no popcnt instruction in the x86-64 baseline this is built for; GCC compiles this
+/// idiom to one in the AVX2 clones of the code scans below).
 inline int PopCount(uint64_t x) {
   x = x - ((x >> 1) & 0x5555555555555555ULL);
   x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
@@ -29,6 +30,15 @@ struct DictionaryCodes {
 
 /// The codes of `dictionary`, cached per thread for the last dictionary seen.
 const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary);
+
+/// The first marker of `codes` (in id order) one of whose rotations lies within `max_distance` bits
+/// of `candidate`, and the rotation nearest it (the first of equals); -1 if none. With `max_distance`
+/// the dictionary's correction this is Dictionary::identify.
+int FirstCodeWithin(const DictionaryCodes& codes, uint64_t candidate, int max_distance, int& rotation);
+
+/// How many codes (each marker in each rotation) agree with `code` on the bits set in `known` but
+/// for at most `allowed`, counted up to two; `match` is the index into codes.code of the last one.
+int CountCodesAgreeing(const DictionaryCodes& codes, uint64_t code, uint64_t known, int allowed, size_t& match);
 
 /// `bits` (row-major, one per cell of the marker's code, 0 or 1) packed as DictionaryCodes are.
 uint64_t PackBits(const unsigned char* bits, int count);

