@@ -160,15 +160,20 @@ double NearestCrossing(double dark, double light, double level, int half, double
 // nearest the middle; infinity without a crossing.
 double AreaOffset(const double* profile, int half, double step, double level, int darkest, int lightest) {
   const int samples = 2 * half + 1;
-  // The crossings counted without branches (where they fall is noise: a branch on each mispredicted).
-  int rising = 0, falling = 0;
+  // The crossings counted without branches (where they fall is noise: a branch on each mispredicted),
+  // from the sides of `level` the samples lie on: every change of side is a crossing, and the rising
+  // ones outnumber the falling ones by the change from the first sample's side to the last's.
+  int crossings = 0;
+  int above = profile[0] >= level;
+  const int first_above = above;
   for (int i = 1; i < samples; ++i) {
-    const double before = profile[i - 1], value = profile[i];
-    rising += (before < level) & (value >= level);
-    falling += (before >= level) & (value < level);
+    const int next = profile[i] >= level;
+    crossings += above ^ next;
+    above = next;
   }
+  const int rising = (crossings + above - first_above) / 2;
   if (rising == 0) return std::numeric_limits<double>::infinity();
-  if (rising + falling == 1) {
+  if (crossings == 1) {
     // Trapezoid rule over the profile normalised to [0, 1].
     const double dark = profile[darkest], light = profile[lightest];
     double area = 0.0;
