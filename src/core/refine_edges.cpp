@@ -118,14 +118,11 @@ double RisingCrossing(int i, int half, double step, double level, double before,
 }
 
 // The offset (px, outwards from the profile's middle) of the rising crossing of `level` nearest the
-// middle, on a profile of 2 half + 1 samples `step` px apart whose ends are `dark` and `light` and
-// whose sample i is sample(i); infinity without one. The intervals are searched from the middle
-// outwards and only as far as the nearest crossing. The same crossing, tie included, as a scan of the
-// whole profile that keeps the first of the nearest.
-template <typename Sample>
-double NearestCrossing(double dark, double light, double level, int half, double step, const Sample& sample) {
-  const int samples = 2 * half + 1;
-  const auto value = [&](int i) { return i == 0 ? dark : i == samples - 1 ? light : sample(i); };
+// middle, on a whole profile of 2 half + 1 samples `step` px apart; infinity without one. The
+// intervals are searched from the middle outwards and only as far as the nearest crossing. The same
+// crossing, tie included, as a scan of the whole profile that keeps the first of the nearest.
+double NearestCrossing(const double* profile, double level, int half, double step) {
+  const auto value = [profile](int i) { return profile[i]; };
   // Interval i runs from sample i - 1 to sample i; a crossing in it lies (i - 1 - half .. i - half)
   // steps from the middle.
   const auto crossing = [&](int i, double before, double after) {
@@ -323,8 +320,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     const double* const profile = profiles[k].data();
     const double offset =
         use_area ? AreaOffset(profile, half, step, level, darkest[k], lightest[k])
-                 : NearestCrossing(profile[0], profile[samples - 1], level, half, step,
-                                   [profile](int i) { return profile[i]; });
+                 : NearestCrossing(profile, level, half, step);
     if (std::abs(offset) < half * step) points[found++] = bases[k] + outward * offset;
   }
   if (found < 3) return false;
