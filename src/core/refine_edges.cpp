@@ -122,17 +122,16 @@ double RisingCrossing(int i, int half, double step, double level, double before,
 // intervals are searched from the middle outwards and only as far as the nearest crossing. The same
 // crossing, tie included, as a scan of the whole profile that keeps the first of the nearest.
 double NearestCrossing(const double* profile, double level, int half, double step) {
-  const auto value = [profile](int i) { return profile[i]; };
   // Interval i runs from sample i - 1 to sample i; a crossing in it lies (i - 1 - half .. i - half)
   // steps from the middle.
   const auto crossing = [&](int i, double before, double after) {
     return RisingCrossing(i, half, step, level, before, after);
   };
-  double right_before = value(half), left_after = right_before;
+  double right_before = profile[half], left_after = right_before;
   for (int d = 0; d < half; ++d) {
     // The intervals d to d + 1 steps from the middle: on the right, then on the left.
     const int right = half + 1 + d, left = half - d;
-    const double right_after = value(right), left_before = value(left - 1);
+    const double right_after = profile[right], left_before = profile[left - 1];
     const double r = crossing(right, right_before, right_after), l = crossing(left, left_before, left_after);
     right_before = right_after;
     left_after = left_before;
@@ -140,7 +139,7 @@ double NearestCrossing(const double* profile, double level, int half, double ste
     if (std::isfinite(l) && !(std::abs(r) < std::abs(l))) return l;  // a tie goes to the left, as a scan's
     // A right crossing exactly d + 1 steps out ties with a left one ending exactly there.
     if (std::abs(r) == (d + 1) * step && left > 1) {
-      const double next = crossing(left - 1, value(left - 2), left_before);
+      const double next = crossing(left - 1, profile[left - 2], left_before);
       if (std::abs(next) == std::abs(r)) return next;
     }
     return r;
