@@ -205,7 +205,7 @@ int Main(int argc, char** argv) {
   nodelet::Loader loader(false);  // in this process, no load/unload services
   if (!loader.load(detector, "arucotag/DetectorNodelet", {}, {})) throw Error("cannot load arucotag/DetectorNodelet");
   for (int i = 0; i < 200 && (image_pub.getNumSubscribers() == 0 || info_pub.getNumSubscribers() == 0 ||
-                              tags_sub.getNumPublishers() == 0);
+                              tags_sub.getNumPublishers() == 0 || tracks_sub.getNumPublishers() == 0);
        ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
