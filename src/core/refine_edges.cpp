@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 
 #include <opencv2/imgproc.hpp>
@@ -205,6 +206,21 @@ double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int
   return sign * kept[k];
 }
 
+// FitEdge reads its profiles in fixed point: sample positions in 1/2048 px (kFixedBits fractional
+// bits, rounded to 0.0005 px at most), and the bilinear value in grey levels times kFixedOne squared,
+// which fits an int32_t. Coordinates must stay under kMaxFixedCoordinate (px) for int64_t positions.
+constexpr int kFixedBits = 11;
+constexpr int32_t kFixedOne = 1 << kFixedBits;
+constexpr double kFixedSquaredToGrey = 1.0 / (static_cast<double>(kFixedOne) * kFixedOne);
+constexpr double kMaxFixedCoordinate = 1 << 20;
+static_assert(255.0 * kFixedOne * kFixedOne < 2147483648.0, "a fixed-point sample must fit an int32_t");
+// `value` (px, |value| < kMaxFixedCoordinate) in fixed point, rounded to the nearest: the offset
+// makes the truncating conversion a floor for negative values too.
+int64_t ToFixed(double value) {
+  constexpr double kOffset = kMaxFixedCoordinate * kFixedOne;
+  return static_cast<int64_t>(value * kFixedOne + (kOffset + 0.5)) - static_cast<int64_t>(kOffset);
+}
+
 // Sub-pixel points of the edge from `from` towards `to`, on the stretch from `start` to `stop` px
 // along it. `outward` is the unit normal pointing from the marker's black border to the white
 // surround; `border` the black border's thickness across the edge (px). At most `profile_count`
@@ -222,28 +238,34 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   const int half = static_cast<int>(std::ceil(reach / step));
   static_assert(2 * 8 + 1 <= kMaxProfileSamples, "reach under 2 px at 0.25 px steps: at most 8 each side");
 
-  // Each sample's offset from the profile's base, the same for every profile of the edge.
-  std::array<double, kMaxProfileSamples> across_x, across_y;
-  for (int i = 0; i < 2 * half + 1; ++i) {
-    across_x[i] = outward.x * ((i - half) * step);
-    across_y[i] = outward.y * ((i - half) * step);
+  // Each sample's offset from the profile's base, the same for every profile of the edge, in
+  // kFixedOne-ths of a pixel.
+  const int samples = 2 * half + 1;
+  std::array<int64_t, kMaxProfileSamples> across_x, across_y;
+  for (int i = 0; i < samples; ++i) {
+    across_x[i] = ToFixed(outward.x * ((i - half) * step));
+    across_y[i] = ToFixed(outward.y * ((i - half) * step));
   }
   const uchar* const pixels = grey.data;
   const ptrdiff_t row_step = static_cast<ptrdiff_t>(grey.step[0]);
+  // The last pixel column and row a sample's top-left pixel may be on (its neighbours are read too).
+  const int64_t last_x = grey.cols - 2, last_y = grey.rows - 2;
 
   // Fixed-size buffers (this runs 8 times a pass on every marker; heap allocations were a measurable
   // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
-  // Sample i of the profile at `base` (0 and samples - 1 are its ends, read below): SampleInside's
-  // arithmetic, so its values.
-  const auto sample = [&](const cv::Point2d& base, int i) {
-    const double x = base.x + across_x[i], y = base.y + across_y[i];
-    const int ix = static_cast<int>(x), iy = static_cast<int>(y);  // the floor: inside the image
-    const uchar* r0 = pixels + iy * row_step + ix;
+  // The bilinear sample at fixed-point (x, y), in grey levels, in integers: in doubles (six
+  // integer-to-double conversions a sample) the sampling was half the edge fit's instructions
+  // (callgrind). On 640x480 frames of 50 markers this takes 5 % off Detect's time (1.5 % of its
+  // instructions), the same markers with the same corner errors, corners within 0.007 px of the
+  // doubles'.
+  const auto sample = [&](int64_t x, int64_t y) {
+    const uchar* r0 = pixels + (y >> kFixedBits) * row_step + (x >> kFixedBits);
     const uchar* r1 = r0 + row_step;
-    const double fx = x - ix, fy = y - iy;
-    const double top = r0[0] + fx * (r0[1] - r0[0]), bottom = r1[0] + fx * (r1[1] - r1[0]);
-    return top + fy * (bottom - top);
+    const int32_t fx = static_cast<int32_t>(x & (kFixedOne - 1)), fy = static_cast<int32_t>(y & (kFixedOne - 1));
+    const int32_t top = (r0[0] << kFixedBits) + (r0[1] - r0[0]) * fx;
+    const int32_t bottom = (r1[0] << kFixedBits) + (r1[1] - r1[0]) * fx;
+    return ((top << kFixedBits) + (bottom - top) * fy) * kFixedSquaredToGrey;
   };
   // Every profile read whole first, with the darkest sample of its dark half and the lightest of its
   // light half: the flat dark and light beside the edge. Its ends are no measure of them: the dark end
@@ -253,7 +275,6 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // out: a level from the ends put every edge inwards, the corners 0.05 px towards the marker's
   // centre (edge fit from the true corners: median error 0.078 px there, 0.037 px from the flat
   // levels).
-  const int samples = 2 * half + 1;
   std::array<std::array<double, kMaxProfileSamples>, kProfilesPerEdge> profiles;
   std::array<cv::Point2d, kProfilesPerEdge> bases;
   std::array<double, kProfilesPerEdge> darks, lights;
@@ -261,20 +282,26 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   int read = 0;
   for (int k = 0; k < count; ++k) {
     const cv::Point2d base = from + u * (start + (stop - start) * k / std::max(1, count - 1));
-    const cv::Point2d a = base - outward * (half * step), b = base + outward * (half * step);
-    if (!ProfileInside(grey, a, b)) continue;
+    // Samples lie along a line: the two ends are the extremes of both coordinates. A profile with
+    // any sample's pixel square outside the image (or a NaN base) is skipped.
+    if (!(std::abs(base.x) < kMaxFixedCoordinate && std::abs(base.y) < kMaxFixedCoordinate)) continue;
+    const int64_t base_x = ToFixed(base.x), base_y = ToFixed(base.y);
+    const int64_t a_x = base_x + across_x[0], b_x = base_x + across_x[samples - 1];
+    const int64_t a_y = base_y + across_y[0], b_y = base_y + across_y[samples - 1];
+    if (std::min({a_x, b_x, a_y, b_y}) < 0 || (std::max(a_x, b_x) >> kFixedBits) > last_x ||
+        (std::max(a_y, b_y) >> kFixedBits) > last_y) {
+      continue;
+    }
     double* const profile = profiles[read].data();
-    profile[0] = internal::SampleInside(grey, a.x, a.y);
-    profile[samples - 1] = internal::SampleInside(grey, b.x, b.y);
     // The outermost of equal extremes: the area between them then spans the most of the flat. Each
     // half's extreme is kept as its samples are read (the first of equal minima from the dark end,
     // the last of equal maxima towards the light end): the indices of a search of each half after
     // the reading, without reading the profile again (callgrind of Detect on 640x480/50: 127.4 -> 126.2 M,
     // the same corners to the bit).
     int low = 0, high = half;
-    double darkest_value = profile[0];
+    double darkest_value = profile[0] = sample(a_x, a_y);
     for (int i = 1; i <= half; ++i) {
-      const double value = sample(base, i);
+      const double value = sample(base_x + across_x[i], base_y + across_y[i]);
       profile[i] = value;
       if (value < darkest_value) {
         darkest_value = value;
@@ -282,15 +309,14 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
       }
     }
     double lightest_value = profile[half];
-    for (int i = half + 1; i + 1 < samples; ++i) {
-      const double value = sample(base, i);
+    for (int i = half + 1; i < samples; ++i) {
+      const double value = sample(base_x + across_x[i], base_y + across_y[i]);
       profile[i] = value;
       if (value >= lightest_value) {
         lightest_value = value;
         high = i;
       }
     }
-    if (profile[samples - 1] >= lightest_value) high = samples - 1;
     if (profile[high] - profile[low] < 10.0) continue;  // too little contrast to place an edge
     bases[read] = base;
     darks[read] = profile[low];
