@@ -188,12 +188,13 @@ double AreaOffset(const double* profile, int half, double step, double level, in
 
 // The k-th smallest of values[0..count) (k = 0: the smallest), with sign -1 the k-th largest: what
 // sorting them and reading that element gives, for k < kKept. Each value passes once through the
-// kKept smallest so far, held sorted by a min and a max per place, without branches: an insertion
+// k + 1 smallest so far, held sorted by a min and a max per place, without branches: an insertion
 // sort of sixteen profile ends mispredicted a branch on most of them (perf: a sixth of the edge fit's
-// time).
+// time). Only k + 1 places are kept (a place past the k-th never moves it).
 constexpr int kKept = kProfilesPerEdge / 4 + 1;
-double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int k, double sign) {
-  std::array<double, kKept> kept;
+template <int kPlaces>
+double RankedIn(const std::array<double, kProfilesPerEdge>& values, int count, double sign) {
+  std::array<double, kPlaces> kept;
   kept.fill(std::numeric_limits<double>::infinity());
   for (int i = 0; i < count; ++i) {
     double value = sign * values[i];
@@ -203,7 +204,17 @@ double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int
       place = low;
     }
   }
-  return sign * kept[k];
+  return sign * kept[kPlaces - 1];
+}
+double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int k, double sign) {
+  static_assert(kKept == 5, "one case per place count");
+  switch (k) {
+    case 0: return RankedIn<1>(values, count, sign);
+    case 1: return RankedIn<2>(values, count, sign);
+    case 2: return RankedIn<3>(values, count, sign);
+    case 3: return RankedIn<4>(values, count, sign);
+    default: CV_DbgAssert(k == kKept - 1); return RankedIn<kKept>(values, count, sign);
+  }
 }
 
 // FitEdge reads its profiles in fixed point: sample positions in 1/2048 px (kFixedBits fractional
