@@ -256,8 +256,8 @@ int Main(int argc, char** argv) {
       for (auto& tag : tags) EstimatePoseFromPNP(set.camera, tag);
       return std::chrono::duration<double, std::milli>(Clock::now() - c0).count();
     };
-    // At least kMinTimedFrames frames timed: a set of two or three photos at `reps` passes gave a
-    // median of 10-15 timings, whose nodelet-over-pipeline ratio moved by 0.3 from run to run.
+    // At least kMinTimedFrames frames timed: a set of two or three photos at make bench's 8 passes
+    // gave 16-24 timings, whose nodelet-over-pipeline ratio moved by up to 0.3 from run to run.
     constexpr int kMinTimedFrames = 48;
     const int frames = static_cast<int>(set.frames.size());
     const int passes = set.sequence ? std::max(1, reps / 2)
