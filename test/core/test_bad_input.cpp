@@ -49,6 +49,37 @@ TEST(BadInput, NonFiniteCornersToRefinement) {
   EXPECT_EQ(corners[1], cv::Point2f(30, 10));
 }
 
+// Corners far outside the image (a bad track, a broken homography) measure nothing: no profile is
+// read, nothing overflows the edge fit's fixed-point sample positions, and nothing moves.
+TEST(BadInput, FarCornersToRefinement) {
+  const cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(128));
+  for (const float far : {1e9f, -1e9f, 3e5f, 2e6f}) {
+    std::array<cv::Point2f, 4> corners = {cv::Point2f(far, far), cv::Point2f(far + 20, far), cv::Point2f(far + 20, far + 20),
+                                          cv::Point2f(far, far + 20)};
+    const auto before = corners;
+    EXPECT_EQ(RefineCornersOnEdges(grey, corners, 6), 0) << far;
+    EXPECT_EQ(corners, before) << far;
+  }
+}
+
+// A marker cut by the image's right and bottom edges: the profiles that would reach past the last
+// pixel are skipped (the sanitizer build checks nothing is read there), the corners inside are still
+// placed, and none moves far.
+TEST(BadInput, MarkerCutByTheImageEdgeToRefinement) {
+  cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(230));
+  // Black from (20, 10) to past the image's right and bottom edges.
+  grey(cv::Rect(20, 10, 44, 38)).setTo(25);
+  std::array<cv::Point2f, 4> corners = {cv::Point2f(20.4f, 10.3f), cv::Point2f(63.6f, 10.3f), cv::Point2f(63.6f, 47.6f),
+                                        cv::Point2f(20.4f, 47.6f)};
+  const auto before = corners;
+  EXPECT_NO_THROW(RefineCornersOnEdges(grey, corners, 6));
+  // The top-left corner's two edges lie inside: it goes to where the steps are, half-way between pixel
+  // centres (19.5, 9.5).
+  EXPECT_NEAR(corners[0].x, 19.5f, 0.05f);
+  EXPECT_NEAR(corners[0].y, 9.5f, 0.05f);
+  for (int i = 0; i < 4; ++i) EXPECT_LT(cv::norm(corners[i] - before[i]), 4.0) << i;
+}
+
 TEST(BadInput, FourChannelImageToDrawDetections) {
   cv::Mat bgra(48, 64, CV_8UC4, cv::Scalar::all(255));
   const std::string message = ErrorOf([&] { DrawDetections(bgra, {}); });
