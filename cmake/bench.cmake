@@ -18,6 +18,11 @@ else()
   message(STATUS "bench_detect: AprilTag not found (apt-get install libapriltag-dev), left out of the benchmark")
 endif()
 
+# Every marker Detect reads on the frame sets and test/data's photos, one line each: two builds' dumps
+# compared with cmp show whether a change kept the results to the bit (bench/bench_dump.cpp).
+add_executable(bench_dump bench/bench_dump.cpp)
+target_link_libraries(bench_dump arucotag_bench_frames)
+
 # Pose trust: flips, rotation error, NEES and time per tag for PnP, cloud and fused.
 add_executable(bench_pose bench/bench_pose.cpp)
 target_link_libraries(bench_pose arucotag_sim arucotag_core)
