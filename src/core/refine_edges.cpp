@@ -218,11 +218,14 @@ double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int
 }
 
 // FitEdge reads its profiles in fixed point: sample positions in 1/2048 px (kFixedBits fractional
-// bits, rounded to 0.0005 px at most), and the bilinear value in grey levels times kFixedOne squared,
-// which fits an int32_t. Coordinates must stay under kMaxFixedCoordinate (px) for int64_t positions.
+// bits, rounded to 0.0005 px at most), and the bilinear value in kFixedGrey units (grey levels times
+// kFixedOne squared), which fits an int32_t. Coordinates must stay under kMaxFixedCoordinate (px) for int64_t positions.
 constexpr int kFixedBits = 11;
 constexpr int32_t kFixedOne = 1 << kFixedBits;
-constexpr double kFixedSquaredToGrey = 1.0 / (static_cast<double>(kFixedOne) * kFixedOne);
+// One grey level in a fixed-point sample's units. The profiles stay in these units: every offset
+// FitEdge takes from them is a ratio of their differences, the same to the bit as in grey levels (the
+// scale is a power of two), and the contrast test scales with it.
+constexpr double kFixedGrey = static_cast<double>(kFixedOne) * kFixedOne;
 constexpr double kMaxFixedCoordinate = 1 << 20;
 static_assert(255.0 * kFixedOne * kFixedOne < 2147483648.0, "a fixed-point sample must fit an int32_t");
 // `value` (px, |value| < kMaxFixedCoordinate) in fixed point, rounded to the nearest: the offset
@@ -265,7 +268,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // Fixed-size buffers (this runs 8 times a pass on every marker; heap allocations were a measurable
   // share of it).
   std::array<cv::Point2d, kProfilesPerEdge> points;
-  // The bilinear sample at fixed-point (x, y), in grey levels, in integers: in doubles (six
+  // The bilinear sample at fixed-point (x, y), in kFixedGrey units, in integers: in doubles (six
   // integer-to-double conversions a sample) the sampling was half the edge fit's instructions
   // (callgrind). On 640x480 frames of 50 markers this takes 5 % off Detect's time (1.5 % of its
   // instructions), the same markers with the same corner errors, corners within 0.007 px of the
@@ -276,7 +279,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     const int32_t fx = static_cast<int32_t>(x & (kFixedOne - 1)), fy = static_cast<int32_t>(y & (kFixedOne - 1));
     const int32_t top = (r0[0] << kFixedBits) + (r0[1] - r0[0]) * fx;
     const int32_t bottom = (r1[0] << kFixedBits) + (r1[1] - r1[0]) * fx;
-    return ((top << kFixedBits) + (bottom - top) * fy) * kFixedSquaredToGrey;
+    return static_cast<double>((top << kFixedBits) + (bottom - top) * fy);
   };
   // Every profile read whole first, with the darkest sample of its dark half and the lightest of its
   // light half: the flat dark and light beside the edge. Its ends are no measure of them: the dark end
@@ -328,7 +331,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
         high = i;
       }
     }
-    if (profile[high] - profile[low] < 10.0) continue;  // too little contrast to place an edge
+    if (profile[high] - profile[low] < 10.0 * kFixedGrey) continue;  // too little contrast to place an edge
     bases[read] = base;
     darks[read] = profile[low];
     lights[read] = profile[high];
