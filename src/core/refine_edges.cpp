@@ -242,10 +242,12 @@ int64_t ToFixed(double value) {
 // measurable.
 bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to, const cv::Point2d& outward,
              double border, double start, double stop, int profile_count, Line& line) {
+  // A degenerate quad (coinciding corners: at 1e9 px a float cannot tell them apart) gives NaN or
+  // infinite lengths, which no profile count or sample count may be made of.
+  if (!std::isfinite(border) || !std::isfinite(stop - start) || stop - start < 2.0) return false;
   const double reach = Reach(border);
   const bool use_area = border >= kPlateauBorder;
   const cv::Point2d u = (to - from) / cv::norm(to - from);
-  if (stop - start < 2.0) return false;
   const int count = std::min({profile_count, kProfilesPerEdge, static_cast<int>(stop - start) + 1});
   // Finer sampling where the profile is only a few pixels long.
   const double step = reach < 2.0 ? 0.25 : 0.5;
