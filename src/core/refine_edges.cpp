@@ -219,7 +219,8 @@ double Ranked(const std::array<double, kProfilesPerEdge>& values, int count, int
 
 // FitEdge reads its profiles in fixed point: sample positions in 1/2048 px (kFixedBits fractional
 // bits, rounded to 0.0005 px at most), and the bilinear value in kFixedGrey units (grey levels times
-// kFixedOne squared), which fits an int32_t. Coordinates must stay under kMaxFixedCoordinate (px) for int64_t positions.
+// kFixedOne squared), which fits an int32_t. Coordinates must stay under kMaxFixedCoordinate (px) for
+// int64_t positions.
 constexpr int kFixedBits = 11;
 constexpr int32_t kFixedOne = 1 << kFixedBits;
 // One grey level in a fixed-point sample's units. The profiles stay in these units: every offset

@@ -54,8 +54,8 @@ TEST(BadInput, NonFiniteCornersToRefinement) {
 TEST(BadInput, FarCornersToRefinement) {
   const cv::Mat grey(48, 64, CV_8UC1, cv::Scalar(128));
   for (const float far : {1e9f, -1e9f, 3e5f, 2e6f}) {
-    std::array<cv::Point2f, 4> corners = {cv::Point2f(far, far), cv::Point2f(far + 20, far), cv::Point2f(far + 20, far + 20),
-                                          cv::Point2f(far, far + 20)};
+    std::array<cv::Point2f, 4> corners = {cv::Point2f(far, far), cv::Point2f(far + 20, far),
+                                          cv::Point2f(far + 20, far + 20), cv::Point2f(far, far + 20)};
     const auto before = corners;
     EXPECT_EQ(RefineCornersOnEdges(grey, corners, 6), 0) << far;
     EXPECT_EQ(corners, before) << far;
