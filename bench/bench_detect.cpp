@@ -48,6 +48,7 @@
 #include <arucotag/arucotag.hpp>
 
 #include "frames.hpp"
+#include "tool_main.hpp"
 
 #ifdef ARUCOTAG_BENCH_APRILTAG
 #include <apriltag.h>
@@ -658,10 +659,5 @@ int Main(int argc, char** argv) {
 }  // namespace arucotag::bench
 
 int main(int argc, char** argv) {
-  try {
-    return arucotag::bench::Main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "bench_detect: %s\n", e.what());
-    return 1;
-  }
+  return arucotag::bench::RunTool("bench_detect", arucotag::bench::Main, argc, argv);
 }

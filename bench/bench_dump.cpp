@@ -22,6 +22,7 @@
 #include <arucotag/detector.hpp>
 
 #include "frames.hpp"
+#include "tool_main.hpp"
 
 namespace arucotag::bench {
 namespace {
@@ -90,10 +91,5 @@ int Main(int argc, char** argv) {
 }  // namespace arucotag::bench
 
 int main(int argc, char** argv) {
-  try {
-    return arucotag::bench::Main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "bench_dump: %s\n", e.what());
-    return 1;
-  }
+  return arucotag::bench::RunTool("bench_dump", arucotag::bench::Main, argc, argv);
 }

@@ -33,6 +33,7 @@
 #include <arucotag/arucotag.hpp>
 
 #include "frames.hpp"
+#include "tool_main.hpp"
 
 namespace arucotag::bench {
 namespace {
@@ -363,10 +364,5 @@ int Main(int argc, char** argv) {
 
 int main(int argc, char** argv) {
   ros::init(argc, argv, "arucotag_bench_nodelet", ros::init_options::NoSigintHandler);
-  try {
-    return arucotag::bench::Main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "bench_nodelet: %s\n", e.what());
-    return 1;
-  }
+  return arucotag::bench::RunTool("bench_nodelet", arucotag::bench::Main, argc, argv);
 }

@@ -34,6 +34,8 @@
 #include <arucotag/arucotag.hpp>
 #include <arucotag/sim.hpp>
 
+#include "tool_main.hpp"
+
 namespace arucotag::bench {
 namespace {
 
@@ -406,10 +408,5 @@ int Main(int argc, char** argv) {
 }  // namespace arucotag::bench
 
 int main(int argc, char** argv) {
-  try {
-    return arucotag::bench::Main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "bench_pose: %s\n", e.what());
-    return 1;
-  }
+  return arucotag::bench::RunTool("bench_pose", arucotag::bench::Main, argc, argv);
 }
