@@ -1,16 +1,15 @@
 // bench_dump: what arucotag::Detect reads, marker by marker, for checking that a change to the core
 // keeps its results, and for counting its instructions.
 //
-//   bench_dump --data test/data --cache DIR [--frames 6] [--sequence-frames 100] [--sets 'a|b'] [--reps N]
+//   bench_dump --data test/data --cache DIR [--frames 6] [--sequence-frames 100] [--sets 'a|b']
 //
 // Runs Detect (default DetectorConfig for the set's dictionary and size, tracking reset before every
-// frame, one OpenCV thread) on every frame of the benchmark's frame sets (those --sets selects), --reps
-// times (default 1), and prints one line per marker of the first pass: the set, the frame, the id,
-// whether the pattern fit placed it, and its four corners to 1e-4 px. Without --sets it then reads
-// test/data's photos (--data) at 7 scales, sharp and blurred, with 6 dictionaries, the same way. Two
-// builds' outputs compared with `cmp` say whether the markers and corners stayed the same to the bit.
-// Under callgrind, `--toggle-collect='arucotag::Detect(*CameraModel const&)'` counts Detect alone.
-#include <algorithm>
+// frame, one OpenCV thread) once on every frame of the benchmark's frame sets (those --sets selects),
+// and prints one line per marker: the set, the frame, the id, whether the pattern fit placed it, and
+// its four corners to 1e-4 px. Without --sets it then reads test/data's photos (--data) at 7 scales,
+// sharp and blurred, with 6 dictionaries, the same way. Two builds' outputs compared with `cmp` say
+// whether the markers and corners stayed the same to the bit. Under callgrind,
+// `--toggle-collect='arucotag::Detect(*CameraModel const&)'` counts Detect alone.
 #include <cstdio>
 #include <string>
 #include <vector>
@@ -64,9 +63,7 @@ void DumpPhotos(const std::string& data) {
 }
 
 int Main(int argc, char** argv) {
-  Options options = ParseOptions(argc, argv, "");
-  // One pass unless asked: the dump is of the first.
-  if (std::none_of(argv + 1, argv + argc, [](const char* arg) { return std::string(arg) == "--reps"; })) options.reps = 1;
+  const Options options = ParseOptions(argc, argv, "");
   const bool photos = options.sets.empty();
   cv::setNumThreads(1);
   for (const FrameSet& set : AllSets(options)) {
@@ -75,12 +72,9 @@ int Main(int argc, char** argv) {
     config.dictionary = set.dictionary;
     config.default_side_length = set.side_length;
     Detector detector(config);
-    for (int rep = 0; rep < std::max(1, options.reps); ++rep) {
-      for (size_t k = 0; k < set.frames.size(); ++k) {
-        detector.ResetTracking();
-        const std::vector<ArucoTag> tags = Detect(set.frames[k].grey, detector);
-        if (rep == 0) Print(set.name + "#" + std::to_string(k), tags);
-      }
+    for (size_t k = 0; k < set.frames.size(); ++k) {
+      detector.ResetTracking();
+      Print(set.name + "#" + std::to_string(k), Detect(set.frames[k].grey, detector));
     }
   }
   if (photos) DumpPhotos(options.data);
