@@ -14,9 +14,9 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <cstdio>
-#include <ctime>
 #include <fstream>
 #include <map>
 #include <mutex>
@@ -33,6 +33,7 @@
 #include <arucotag/arucotag.hpp>
 
 #include "frames.hpp"
+#include "stats.hpp"
 #include "tool_main.hpp"
 
 namespace arucotag::bench {
@@ -41,20 +42,6 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 constexpr const char* kNamespace = "/arucotag_bench";
-
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0.0;
-  std::sort(v.begin(), v.end());
-  const double pos = q * (v.size() - 1);
-  const size_t i = static_cast<size_t>(pos);
-  return i + 1 < v.size() ? v[i] + (pos - i) * (v[i + 1] - v[i]) : v[i];
-}
-
-double CpuMs() {
-  timespec t{};
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
-  return t.tv_sec * 1e3 + t.tv_nsec * 1e-6;
-}
 
 // Messages (the tags, the tracks) as they arrive, by stamp, with their arrival time.
 template <class Msg>
@@ -343,22 +330,24 @@ int Main(int argc, char** argv) {
          "publish() to the tags message arriving at a subscriber in the same process\",\n  \"sets\": [\n";
   for (size_t i = 0; i < rows.size(); ++i) {
     const Row& r = rows[i];
-    double mean = 0.0;
-    for (double w : r.wall) mean += w / std::max<size_t>(1, r.wall.size());
+    // A set whose frames were all lost has no times: null, not 0 ms.
+    double mean = r.wall.empty() ? NAN : 0.0;
+    for (double w : r.wall) mean += w / r.wall.size();
     out << "    {\"name\": \"" << r.name << "\", \"method\": {\"label\": \"nodelet in a manager, publish to tags (own run)\", "
-        << "\"median_ms\": " << Percentile(r.wall, 0.5) << ", \"p90_ms\": " << Percentile(r.wall, 0.9)
-        << ", \"mean_ms\": " << mean << ", \"cpu_median_ms\": " << Percentile(r.cpu, 0.5) << ", \"calls\": " << r.wall.size()
-        << ", \"lost\": " << r.lost << ", \"found\": " << r.found << ", \"expected\": " << r.expected
-        << ", \"false_positives\": " << r.false_positives << "}, \"core_side_by_side\": {\"median_ms\": "
-        << Percentile(r.core_wall, 0.5) << ", \"p90_ms\": " << Percentile(r.core_wall, 0.9)
-        << ", \"paired_ratio_median\": " << PairedRatioMedian(r) << "}}"
+        << "\"median_ms\": " << JsonNumber(Percentile(r.wall, 0.5)) << ", \"p90_ms\": " << JsonNumber(Percentile(r.wall, 0.9))
+        << ", \"mean_ms\": " << JsonNumber(mean) << ", \"cpu_median_ms\": " << JsonNumber(Percentile(r.cpu, 0.5))
+        << ", \"calls\": " << r.wall.size() << ", \"lost\": " << r.lost << ", \"found\": " << r.found
+        << ", \"expected\": " << r.expected << ", \"false_positives\": " << r.false_positives
+        << "}, \"core_side_by_side\": {\"median_ms\": " << JsonNumber(Percentile(r.core_wall, 0.5))
+        << ", \"p90_ms\": " << JsonNumber(Percentile(r.core_wall, 0.9))
+        << ", \"paired_ratio_median\": " << JsonNumber(PairedRatioMedian(r)) << "}}"
         << (i + 1 < rows.size() ? "," : "") << "\n";
   }
   out << "  ],\n  \"stream_30hz\": {\"sent\": " << stream.sent << ", \"answered\": " << stream.answered
-      << ", \"latency_median_ms\": " << Percentile(stream.latency, 0.5)
-      << ", \"latency_p99_ms\": " << Percentile(stream.latency, 0.99)
-      << ", \"core_median_ms\": " << Percentile(stream.core, 0.5)
-      << ", \"core_p99_ms\": " << Percentile(stream.core, 0.99) << "}\n}\n";
+      << ", \"latency_median_ms\": " << JsonNumber(Percentile(stream.latency, 0.5))
+      << ", \"latency_p99_ms\": " << JsonNumber(Percentile(stream.latency, 0.99))
+      << ", \"core_median_ms\": " << JsonNumber(Percentile(stream.core, 0.5))
+      << ", \"core_p99_ms\": " << JsonNumber(Percentile(stream.core, 0.99)) << "}\n}\n";
   std::fprintf(stderr, "bench_nodelet: wrote %s\n", json.c_str());
   return 0;
 }

@@ -34,6 +34,7 @@
 #include <arucotag/arucotag.hpp>
 #include <arucotag/sim.hpp>
 
+#include "stats.hpp"
 #include "tool_main.hpp"
 
 namespace arucotag::bench {
@@ -114,8 +115,6 @@ double Mean(const std::vector<double>& v) {
   return v.empty() ? std::nan("") : sum / v.size();
 }
 
-// JSON has no NaN: an empty bin's mean is null.
-std::string JsonNumber(double value) { return std::isfinite(value) ? std::to_string(value) : "null"; }
 
 // Moves `fraction` of the finite cloud points the cloud pose uses (inside the tag shrunk by `shrink`),
 // the outermost first (in the marker's own square coordinates), 1 m further along their rays.
