@@ -115,7 +115,6 @@ double Mean(const std::vector<double>& v) {
   return v.empty() ? std::nan("") : sum / v.size();
 }
 
-
 // Moves `fraction` of the finite cloud points the cloud pose uses (inside the tag shrunk by `shrink`),
 // the outermost first (in the marker's own square coordinates), 1 m further along their rays.
 void PushEdgeToBackground(const ArucoTag& tag, double fraction, double shrink, cv::Mat& cloud) {
