@@ -41,8 +41,17 @@ constexpr int kBlur = 12;
 // kernel radius that range needs.
 constexpr double kMaxBlurVariance = 2.25;
 constexpr int kBlurRadius = 5;
-// Blur variances (px^2) tried for the start: sharp, sigma 0.5, 0.8 and 1.2 px.
-constexpr double kStartBlurVariances[] = {0.0, 0.25, 0.64, 1.44};
+// Blur variances (px^2) tried for the start: sharp, sigma 0.3, 0.5, 0.8 and 1.2 px. The kernel's hat
+// (BlurKernel) already carries 1/6 px^2, so a lens blur of sigma 0.5 px fits at about 0.08 px^2, not 0.25.
+// Without 0.09 such markers started at 0.25, and the first Gauss-Newton step took the variance to
+// 0-0.005, where the cost was up to 1.9 times the start's (near 0 it rises with the kernel's sigma, not its
+// variance: the linear model overshoots): the step was refused and the fit paid for one more trial. On
+// 640x480 frames of 20 markers 18 of 44 first trials were refused, of 50 markers 15 of 54; with 0.09
+// none, and 28 and 39 trials in all. Callgrind of Detect: 640x480 with 20 markers 76.9 -> 74.0 M, with
+// 50 113.6 -> 111.3 M, tag36h11 at 720p 94.9 -> 93.2 M; the real 640x480 photos 56.5 -> 57.1 M (their
+// sharp prints try one blur more), the dim distant set 115.5 -> 115.6 M. The corners' median error on
+// the 20 markers 0.0140 -> 0.0127 px, on tag36h11 at 720p 0.0149 -> 0.0129 px, p95 the same.
+constexpr double kStartBlurVariances[] = {0.0, 0.09, 0.25, 0.64, 1.44};
 // px: edge-refined corners of markers under 20 px, seen at 60 degrees, start up to 1.3 px off.
 constexpr double kMaxMove = 2.0;
 // px: cells at least this wide are sampled on every other pixel (see SelectPixels).
@@ -850,17 +859,18 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
     if (blur >= 0.0) {
       try_variance(std::min(blur, kMaxBlurVariance), false, false);
     } else {
-      // The residual falls towards the marker's blur and rises past it: the middle two variances tell
-      // on which side of them it lies, and only the end on that side is tried. Three blurs instead of
-      // four: on every bench set the same starts as trying all four in order (Detect's markers
-      // byte-identical), and callgrind of Detect on 640x480/5 51.2 -> 50.1 M, photos 72.4 -> 71.4 M.
-      static_assert(std::size(kStartBlurVariances) == 4, "two middle variances and two ends");
-      const double sharper = try_variance(kStartBlurVariances[1], true, false);
-      const double blurrier = try_variance(kStartBlurVariances[2], true, false);
+      // The residual falls towards the marker's blur and rises past it: the middle two variances (0.25
+      // and 0.64) tell on which side of them it lies, and only that side is tried on, outwards from
+      // them while the residual keeps falling. Three or four blurs instead of five: trying all four of
+      // the variances before 0.09 came in order gave the same starts on every bench set (Detect's
+      // markers byte-identical), and callgrind of Detect on 640x480/5 51.2 -> 50.1 M, photos 72.4 -> 71.4 M.
+      static_assert(std::size(kStartBlurVariances) == 5, "two middle variances, a sharper one and two ends");
+      const double sharper = try_variance(kStartBlurVariances[2], true, false);
+      const double blurrier = try_variance(kStartBlurVariances[3], true, false);
       if (sharper <= blurrier) {
-        try_variance(kStartBlurVariances[0], false, true);
+        if (try_variance(kStartBlurVariances[1], true, true) <= sharper) try_variance(kStartBlurVariances[0], false, true);
       } else {
-        try_variance(kStartBlurVariances[3], false, false);
+        try_variance(kStartBlurVariances[4], false, false);
       }
     }
     if (!std::isfinite(best)) return false;
