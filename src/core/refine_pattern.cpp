@@ -44,7 +44,7 @@ constexpr int kBlurRadius = 5;
 // Blur variances (px^2) tried for the start: sharp, sigma 0.3, 0.5, 0.8 and 1.2 px. The kernel's hat
 // (BlurKernel) already carries 1/6 px^2, so a lens blur of sigma 0.5 px fits at about 0.08 px^2, not 0.25.
 // Without 0.09 such markers started at 0.25, and the first Gauss-Newton step took the variance to
-// 0-0.005, where the cost was up to 1.9 times the start's (near 0 it rises with the kernel's sigma, not its
+// 0-0.008, where the cost was up to 2.4 times the start's (near 0 it rises with the kernel's sigma, not its
 // variance: the linear model overshoots): the step was refused and the fit paid for one more trial. On
 // 640x480 frames of 20 markers 18 of 44 first trials were refused, of 50 markers 15 of 54; with 0.09
 // none, and 28 and 39 trials in all. Callgrind of Detect: 640x480 with 20 markers 76.9 -> 74.0 M, with
