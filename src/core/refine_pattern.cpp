@@ -42,7 +42,8 @@ constexpr int kBlur = 12;
 constexpr double kMaxBlurVariance = 2.25;
 constexpr int kBlurRadius = 5;
 // Blur variances (px^2) tried for the start: sharp, sigma 0.3, 0.5, 0.8 and 1.2 px. The kernel's hat
-// (BlurKernel) already carries 1/6 px^2, so a lens blur of sigma 0.5 px fits at about 0.08 px^2, not 0.25.
+// (BlurKernel) adds a variance of its own, from 0 at 0 to 1/6 px^2 (0.14-0.15 at 0.07-0.1), so a lens
+// blur of sigma 0.5 px fits at about 0.07-0.1 px^2, not 0.25.
 // Without 0.09 such markers started at 0.25, and the first Gauss-Newton step took the variance to
 // 0-0.008, where the cost was up to 2.4 times the start's (near 0 it rises with the kernel's sigma, not its
 // variance: the linear model overshoots): the step was refused and the fit paid for one more trial. On

@@ -591,12 +591,12 @@ TEST(PatternFit, LastSmallStepIsTakenUnconfirmed) {
   EXPECT_LE(unconfirmed + fits / 3, confirmed);
 }
 
-// A camera's 0.5 px blur fits at about 0.25 - 1/6 px^2 (the coverage kernel's hat carries 1/6), under
-// the 0.25 that the start scan tried first until stop 59. From there the first Gauss-Newton step took the
+// A camera's 0.5 px blur fits at about 0.07-0.1 px^2 (the coverage kernel's hat adds 0.14-0.15 px^2 of
+// its own there, up to 1/6 for wider blurs), under the 0.25 that the start scan tried first until stop 59. From there the first Gauss-Newton step took the
 // variance to about 0, which a linear model of the cost overshoots to: on bench's 640x480 frames of 20
 // markers 18 of 44 such steps were refused (one more evaluation each), and here, where most were taken,
 // the fits ended at 0 (median 0.000 px^2, 15 evaluations for the 12 fits). The start now tries 0.09 px^2
-// too: the fitted variance lands near 0.083 and a fit from the edge fit's corners takes at most two
+// too: the fitted variance lands there (median 0.070) and a fit from the edge fit's corners takes at most two
 // evaluations (the start and its one confirmed step). Markers of 20-56 px at 0-50 degrees, blur 0.5 px,
 // noise 2 grey levels, as bench's rendered sets.
 TEST(PatternFit, SlightBlurStartsNearItsFittedVariance) {
@@ -635,7 +635,9 @@ TEST(PatternFit, SlightBlurStartsNearItsFittedVariance) {
   std::sort(variances.begin(), variances.end());
   std::printf("%d fits, %zu evaluations; fitted blur variance %.3f-%.3f px^2 (median %.3f)\n", fits, evaluations,
               variances.front(), variances.back(), variances[variances.size() / 2]);
-  EXPECT_NEAR(variances[variances.size() / 2], 0.25 - 1.0 / 6.0, 0.05);
+  // 0.03-0.15 px^2: with its hat the kernel's variance is then 0.14-0.31 px^2, around the render's 0.25.
+  EXPECT_GT(variances[variances.size() / 2], 0.03);
+  EXPECT_LT(variances[variances.size() / 2], 0.15);
   EXPECT_LE(evaluations, static_cast<size_t>(2 * fits));
 }
 
