@@ -592,13 +592,14 @@ TEST(PatternFit, LastSmallStepIsTakenUnconfirmed) {
 }
 
 // A camera's 0.5 px blur fits at about 0.07-0.1 px^2 (the coverage kernel's hat adds 0.14-0.15 px^2 of
-// its own there, up to 1/6 for wider blurs), under the 0.25 that the start scan tried first until stop 59. From there the first Gauss-Newton step took the
-// variance to about 0, which a linear model of the cost overshoots to: on bench's 640x480 frames of 20
-// markers 18 of 44 such steps were refused (one more evaluation each), and here, where most were taken,
-// the fits ended at 0 (median 0.000 px^2, 15 evaluations for the 12 fits). The start now tries 0.09 px^2
-// too: the fitted variance lands there (median 0.070) and a fit from the edge fit's corners takes at most two
-// evaluations (the start and its one confirmed step). Markers of 20-56 px at 0-50 degrees, blur 0.5 px,
-// noise 2 grey levels, as bench's rendered sets.
+// its own there, up to 1/6 for wider blurs), under the 0.25 that the start scan tried first until stop
+// 59. From there the first Gauss-Newton step took the variance to about 0, which a linear model of the
+// cost overshoots to: on bench's 640x480 frames of 20 markers 18 of 44 such steps were refused (one more
+// evaluation each), and here, where most were taken, the fits ended at 0 (median 0.000 px^2, 15
+// evaluations for the 12 fits). The start now tries 0.09 px^2 too: the fitted variance lands there
+// (median 0.070) and a fit from the edge fit's corners takes at most two evaluations (the start and its
+// one confirmed step). Markers of 20-56 px at 0-50 degrees, blur 0.5 px, noise 2 grey levels, as
+// bench's rendered sets.
 TEST(PatternFit, SlightBlurStartsNearItsFittedVariance) {
   const sim::Camera camera = test::RoverCamera();
   const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
