@@ -869,7 +869,8 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
       const double sharper = try_variance(kStartBlurVariances[2], true, false);
       const double blurrier = try_variance(kStartBlurVariances[3], true, false);
       if (sharper <= blurrier) {
-        if (try_variance(kStartBlurVariances[1], true, true) <= sharper) try_variance(kStartBlurVariances[0], false, true);
+        const double slight = try_variance(kStartBlurVariances[1], true, true);
+        if (slight <= sharper) try_variance(kStartBlurVariances[0], false, true);
       } else {
         try_variance(kStartBlurVariances[4], false, false);
       }
