@@ -730,12 +730,14 @@ bool SolveEnvelope(double* a, int m, const int* first, double* b) {
     for (int k = first[i]; k < i; ++k) s -= at(i, k) * b[k];
     b[i] = s * at(i, i);
   }
+  // Row by row from the last: once x[i] is known it comes off every b[k] its row of L reaches, so each
+  // b[k] loses its terms in the order of descending i, the order a dot product over column k of L
+  // would take them (the same values to the bit), without visiting the zeros left of each row's
+  // envelope (a test per entry of the whole triangle was 30 % of this solve).
   for (int i = m - 1; i >= 0; --i) {
-    double s = b[i];
-    for (int k = m - 1; k > i; --k) {
-      if (first[k] <= i) s -= at(k, i) * b[k];
-    }
-    b[i] = s * at(i, i);
+    b[i] *= at(i, i);
+    const double x = b[i];
+    for (int k = first[i]; k < i; ++k) b[k] -= at(i, k) * x;
   }
   return true;
 }
