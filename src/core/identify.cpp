@@ -409,14 +409,17 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   };
   std::sort(order.begin(), order.end(),
             [&](size_t a, size_t b) { return std::make_pair(wave(a), a) < std::make_pair(wave(b), b); });
-  std::vector<size_t> batch;
-  for (size_t first = 0; first < n;) {
-    size_t last = first;
-    while (last < n && wave(order[last]) == wave(order[first])) ++last;
-    batch.clear();
-    for (size_t k = first; k < last; ++k) {
-      if (!on_read_marker(order[k])) batch.push_back(order[k]);
-    }
+  // Within a wave, a quad around the centre of a smaller one of the same wave (the outline of a
+  // marker's quiet zone, about twice its area) waits for the others: on a marker they read, it is
+  // not read either. On 640x480 frames of 50 markers 160 of the 182 quads that failed to read were
+  // such outlines, read beside their markers.
+  const auto around = [&](size_t i, size_t j) {
+    const cv::Vec4f &a = box[i], &b = box[j];
+    return quads[j].area < quads[i].area && a[0] <= b[2] && b[0] <= a[2] && a[1] <= b[3] && b[1] <= a[3] &&
+           StrictlyInside(quads[i].corners, Centre(quads[j].corners));
+  };
+  std::vector<size_t> batch, waiting;
+  const auto read_batch = [&]() {
     ParallelFor(cv::Range(0, static_cast<int>(batch.size())), config.threads, [&](const cv::Range& range) {
       for (int b = range.start; b < range.end; ++b) {
         const size_t i = batch[b];
@@ -430,6 +433,24 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     for (const size_t i : batch) {
       if (ids[i] >= 0) read.push_back(i);
     }
+  };
+  for (size_t first = 0; first < n;) {
+    size_t last = first;
+    while (last < n && wave(order[last]) == wave(order[first])) ++last;
+    batch.clear();
+    waiting.clear();
+    for (size_t k = first; k < last; ++k) {
+      const size_t i = order[k];
+      if (on_read_marker(i)) continue;
+      const bool outline = std::any_of(order.begin() + first, order.begin() + last, [&](size_t j) { return around(i, j); });
+      (outline ? waiting : batch).push_back(i);
+    }
+    read_batch();
+    batch.clear();
+    for (const size_t i : waiting) {
+      if (!on_read_marker(i)) batch.push_back(i);
+    }
+    read_batch();
     first = last;
   }
   // Small quads left over, except the cells of markers read and the outlines around them (their
