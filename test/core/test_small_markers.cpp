@@ -11,7 +11,9 @@
 #include <opencv2/aruco.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "candidates.hpp"
 #include "decode_small.hpp"
+#include "identify.hpp"
 #include "refine_pattern.hpp"
 #include "scene.hpp"
 
@@ -341,31 +343,38 @@ std::array<cv::Point2f, 4> Inset(const std::array<cv::Point2f, 4>& corners, cons
   return quad;
 }
 
-// How many of the framings `insets` (Inset) of dim tag36h11 markers DecodeSmall reads, every reading
-// the marker's own id. The markers: at each of `ranges` (m), facing the rover camera or tilted 30
-// degrees, in three rolls, with a third of the light and 0.6 of the contrast, the distant set's blur
-// and noise, as bench's dim distant set renders them.
+// A 0.15 m tag36h11 marker at `range` (m) before the rover camera, tilted by `tilt` degrees and rolled
+// by `roll`, with a third of the light and 0.6 of the contrast, the distant set's blur and noise, as
+// bench's dim distant set renders it (noise seeded by `seed`); `truth` receives its corners.
+cv::Mat DimTag36h11(int id, double range, double tilt, double roll, unsigned seed, std::array<cv::Point2f, 4>& truth) {
+  const sim::Camera camera = test::RoverCamera();
+  const sim::Marker marker = sim::FacingCamera(id, 0.15, {0.1 * range, -0.05 * range, range}, tilt, 0.3 * tilt, roll);
+  sim::RenderOptions options;
+  options.dictionary = cv::aruco::DICT_APRILTAG_36h11;
+  options.seed = seed;
+  options.blur_sigma = 0.8;
+  options.noise_sigma = 3.0;
+  options.brightness = 0.35;
+  options.contrast = 0.6;
+  cv::Mat grey;
+  PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
+  truth = sim::ProjectCorners(camera, marker);
+  return grey;
+}
+
+// How many of the framings `insets` (Inset) of dim tag36h11 markers (DimTag36h11) DecodeSmall reads,
+// every reading the marker's own id. The markers: at each of `ranges` (m), facing the rover camera or
+// tilted 30 degrees, in three rolls.
 int DimTag36h11FramingsRead(const std::vector<double>& ranges, const std::vector<std::array<float, 4>>& insets) {
   const auto tag36h11 = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11);
-  const sim::Camera camera = test::RoverCamera();
   int read = 0, views = 0;
   for (const double range : ranges) {
     for (const double tilt : {0.0, 30.0}) {
       for (const double roll : {20.0, 65.0, 130.0}) {
         const int id = (17 + 61 * views) % 587;
         ++views;
-        const sim::Marker marker =
-            sim::FacingCamera(id, 0.15, {0.1 * range, -0.05 * range, range}, tilt, 0.3 * tilt, roll);
-        sim::RenderOptions options;
-        options.dictionary = cv::aruco::DICT_APRILTAG_36h11;
-        options.seed = views;
-        options.blur_sigma = 0.8;
-        options.noise_sigma = 3.0;
-        options.brightness = 0.35;
-        options.contrast = 0.6;
-        cv::Mat grey;
-        PreprocessFrame(sim::RenderScene(camera, {marker}, options), grey);
-        const std::array<cv::Point2f, 4> truth = sim::ProjectCorners(camera, marker);
+        std::array<cv::Point2f, 4> truth;
+        const cv::Mat grey = DimTag36h11(id, range, tilt, roll, views, truth);
         for (size_t k = 0; k < insets.size(); ++k) {
           internal::SmallMarker small;
           if (!internal::DecodeSmall(grey, Inset(truth, insets[k]), *tag36h11, 1, false, small)) continue;
@@ -402,6 +411,65 @@ TEST(SmallMarkers, DimTag36h11ReadFromContoursWithOneSideFarInside) {
                           {0.6f, 1.4f, 0.6f, 0.2f}, {0.3f, 0.3f, 1.6f, 0.3f}, {1.6f, 0.3f, 0.3f, 0.3f}});
   std::printf("dim tag36h11 of 12-17 px framed with one side far inside: %d of 108 read\n", read);
   EXPECT_GE(read, 60);
+}
+
+// One small marker's contour traced twice (at two pyramid levels, or under two thresholds: quads too
+// close to be two candidates) gets one second look. Decode reads such a group in the order its merge
+// prefers (the finer level, then the bigger quad) and stops at the first read, so the pair costs what
+// its first quad costs alone, in cell estimates and pattern-fit evaluations, and gives the same
+// marker at the same corners. Dim tag36h11 markers of 12-15 px, which cv::aruco's reading misses, each
+// framed 0.3 px and 0.6 px inside its black square.
+TEST(SmallMarkers, MarkerTracedTwiceGetsOneSecondLook) {
+  const auto tag36h11 = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11);
+  DetectorConfig config;
+  config.dictionary = "DICT_APRILTAG_36h11";
+  config.threads = 1;  // the counts are per thread
+  const Detector detector(config);
+  const auto quad = [](const std::array<cv::Point2f, 4>& truth, float inside) {
+    internal::Quad q;
+    q.corners = Inset(truth, {inside, inside, inside, inside});
+    const std::vector<cv::Point2f> outline(q.corners.begin(), q.corners.end());
+    q.area = static_cast<float>(cv::contourArea(outline));
+    q.perimeter = static_cast<int>(cv::arcLength(outline, true));  // about its traced contour's length
+    return q;
+  };
+  int views = 0, second_looks = 0;
+  for (const double range : {9.0, 10.0, 11.0}) {
+    for (const double roll : {20.0, 65.0, 130.0}) {
+      const int id = (29 + 53 * views) % 587;
+      ++views;
+      std::array<cv::Point2f, 4> truth;
+      const cv::Mat grey = DimTag36h11(id, range, 0.0, roll, views, truth);
+      internal::Pyramid pyramid;
+      pyramid.Build(grey);
+      const internal::Quad outer = quad(truth, 0.3f), inner = quad(truth, 0.6f);
+      const auto decode = [&](const std::vector<internal::Quad>& quads, size_t& estimates, size_t& evaluations) {
+        const size_t cells_before = internal::SmallCellEstimates(), fit_before = internal::PatternFitEvaluations();
+        const std::vector<internal::Found> found = internal::Decode(pyramid, quads, config, *tag36h11, *detector.parameters());
+        estimates = internal::SmallCellEstimates() - cells_before;
+        evaluations = internal::PatternFitEvaluations() - fit_before;
+        return found;
+      };
+      size_t alone_estimates = 0, alone_evaluations = 0, pair_estimates = 0, pair_evaluations = 0;
+      size_t inner_estimates = 0, inner_evaluations = 0;
+      const std::vector<internal::Found> alone = decode({outer}, alone_estimates, alone_evaluations);
+      const std::vector<internal::Found> inner_alone = decode({inner}, inner_estimates, inner_evaluations);
+      // Only a marker the first quad's second look reads tells: one that cv::aruco's reading of either
+      // quad reads (no cell estimate) is read before any second look.
+      if (alone.size() != 1 || alone_estimates == 0 || (!inner_alone.empty() && inner_estimates == 0)) continue;
+      ++second_looks;
+      const std::vector<internal::Found> pair = decode({outer, inner}, pair_estimates, pair_evaluations);
+      const std::string what = std::to_string(range) + " m, roll " + std::to_string(roll);
+      EXPECT_EQ(alone[0].id, id) << what;
+      ASSERT_EQ(pair.size(), 1u) << what;
+      EXPECT_EQ(pair[0].id, id) << what;
+      EXPECT_EQ(pair[0].corners, alone[0].corners) << what;
+      EXPECT_EQ(pair_estimates, alone_estimates) << what;
+      EXPECT_EQ(pair_evaluations, alone_evaluations) << what;
+    }
+  }
+  std::printf("dim tag36h11 traced twice: %d of %d read by the first quad's second look\n", second_looks, views);
+  EXPECT_GE(second_looks, 3);
 }
 
 // A low-contrast DICT_4X4_50 marker (ink 150, paper 200, 4 px cells, a 0.6 px blur) framed by a quad
