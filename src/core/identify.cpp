@@ -322,8 +322,8 @@ class SecondLooks {
 // cv::aruco's windows (3, 13, 23 px) trace slightly different contours than this search's: those
 // are traced on the quad's neighbourhood and read the same way first, so that every marker the full
 // search decodes is decoded here too. What still fails gets the second-chance decoder, on this
-// contour and on cv::aruco's (`second_chance` set: cv::aruco has no corners of its own there).
-// Either way a pattern fit checks the reading; `checked` receives it.
+// contour and on cv::aruco's (`second_chance` set: cv::aruco has no corners of its own there), when
+// `second_look` asks for it. Either way a pattern fit checks the reading; `checked` receives it.
 bool DecodeSmallQuad(const Pyramid& pyramid, const DetectorConfig& config, const cv::aruco::Dictionary& dictionary,
                      const cv::aruco::DetectorParameters& p, const Quad& quad, bool second_look, Quad& decoded, int& id,
                      bool& second_chance, FittedPattern& checked, SecondLooks& looks) {
@@ -412,11 +412,21 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
   // Within a wave, a quad around the centre of a smaller one of the same wave (the outline of a
   // marker's quiet zone, about twice its area) waits for the others: on a marker they read, it is
   // not read either. On 640x480 frames of 50 markers 160 of the 182 quads that failed to read were
-  // such outlines, read beside their markers.
-  const auto around = [&](size_t i, size_t j) {
-    const cv::Vec4f &a = box[i], &b = box[j];
-    return quads[j].area < quads[i].area && a[0] <= b[2] && b[0] <= a[2] && a[1] <= b[3] && b[1] <= a[3] &&
-           StrictlyInside(quads[i].corners, Centre(quads[j].corners));
+  // such outlines, read beside their markers. The centres inside a quad's box are looked up among the
+  // wave's sorted by x (a wave of gravel or foliage can hold hundreds of quads).
+  std::vector<cv::Point2f> centre(n);
+  for (size_t i = 0; i < n; ++i) centre[i] = Centre(quads[i].corners);
+  std::vector<std::pair<float, size_t>> by_x;  // the wave's quads by their centre's x
+  const auto outline = [&](size_t i) {
+    const auto from = std::lower_bound(by_x.begin(), by_x.end(), std::make_pair(box[i][0], size_t(0)));
+    for (auto c = from; c != by_x.end() && c->first <= box[i][2]; ++c) {
+      const size_t j = c->second;
+      if (quads[j].area < quads[i].area && centre[j].y >= box[i][1] && centre[j].y <= box[i][3] &&
+          StrictlyInside(quads[i].corners, centre[j])) {
+        return true;
+      }
+    }
+    return false;
   };
   std::vector<size_t> batch, waiting;
   const auto read_batch = [&]() {
@@ -439,11 +449,12 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     while (last < n && wave(order[last]) == wave(order[first])) ++last;
     batch.clear();
     waiting.clear();
+    by_x.clear();
+    for (size_t k = first; k < last; ++k) by_x.emplace_back(centre[order[k]].x, order[k]);
+    std::sort(by_x.begin(), by_x.end());
     for (size_t k = first; k < last; ++k) {
       const size_t i = order[k];
-      if (on_read_marker(i)) continue;
-      const bool outline = std::any_of(order.begin() + first, order.begin() + last, [&](size_t j) { return around(i, j); });
-      (outline ? waiting : batch).push_back(i);
+      if (!on_read_marker(i)) (outline(i) ? waiting : batch).push_back(i);
     }
     read_batch();
     batch.clear();
