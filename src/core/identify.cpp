@@ -421,10 +421,7 @@ std::vector<Found> Decode(const Pyramid& pyramid, const std::vector<Quad>& quads
     const auto from = std::lower_bound(by_x.begin(), by_x.end(), std::make_pair(box[i][0], size_t(0)));
     for (auto c = from; c != by_x.end() && c->first <= box[i][2]; ++c) {
       const size_t j = c->second;
-      if (quads[j].area < quads[i].area && centre[j].y >= box[i][1] && centre[j].y <= box[i][3] &&
-          StrictlyInside(quads[i].corners, centre[j])) {
-        return true;
-      }
+      if (quads[j].area < quads[i].area && StrictlyInside(quads[i].corners, centre[j])) return true;
     }
     return false;
   };
