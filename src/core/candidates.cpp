@@ -16,6 +16,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <numeric>
 #include <tuple>
@@ -295,13 +296,16 @@ void QuadsFromBinary(cv::Mat& binary, const cv::Rect& roi, const cv::Size& level
   // Borders come in raster order; cv::findContours lists them last found first, and so does `out`
   // (of equal quads, merging keeps the one listed last).
   const size_t first = out.size();
-  thread_local std::vector<cv::Point> contour, approx;
+  thread_local std::vector<cv::Point> border, contour, approx;
   thread_local std::vector<cv::Rect> quad_boxes;  // of the outer borders listed so far
   quad_boxes.clear();
-  BorderScan scan(binary);
-  while (scan.Next(contour)) {
-    const int n = static_cast<int>(contour.size());
+  BorderScan scan(binary, border);
+  while (scan.Next()) {
+    // Only a border of a marker's perimeter is copied out of the scan's buffer (most are specks).
+    const int n = scan.size();
     if (n < task.min_perimeter || n > task.max_perimeter) continue;
+    contour.resize(static_cast<size_t>(n));
+    std::memcpy(contour.data(), scan.points(), static_cast<size_t>(n) * sizeof(cv::Point));
     const Outline outline = Measure(contour);
     const cv::Rect& box = outline.box;
     // A hole whose box lies inside an earlier quad's (found first: raster order) is that quad's

@@ -19,10 +19,15 @@ constexpr uchar kForeground = 1;
 /// function lists the same borders, last found first.
 class BorderScan {
  public:
-  explicit BorderScan(cv::Mat& binary);
+  /// `buffer` holds each border's points in turn (its size is its own: at least the longest border's).
+  BorderScan(cv::Mat& binary, std::vector<cv::Point>& buffer);
 
-  /// The next border in raster order: false when there is none left. `points` gets every pixel of
-  /// it (CHAIN_APPROX_NONE).
+  /// The next border in raster order: false when there is none left. Its points, every pixel of it
+  /// (CHAIN_APPROX_NONE), are points()[0, size()) until the next call.
+  bool Next();
+  const cv::Point* points() const { return buffer_.data(); }
+  int size() const { return size_; }
+  /// Next(), with the border's points copied into `points`.
   bool Next(std::vector<cv::Point>& points);
   /// Whether the border Next gave last is a hole's (foreground round background).
   bool hole() const { return hole_; }
@@ -33,6 +38,8 @@ class BorderScan {
   int rows_, cols_;
   int x_ = 1, y_ = 1;
   bool hole_ = false;
+  std::vector<cv::Point>& buffer_;
+  int size_ = 0;
 };
 
 /// A closed polygon's bounding box and twice its signed area (the shoelace sum), exactly: what

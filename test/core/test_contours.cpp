@@ -42,7 +42,8 @@ std::vector<Border> OpenCvBorders(cv::Mat binary) {
 // BorderScan's, last found first as OpenCV lists them.
 std::vector<Border> ScanBorders(cv::Mat binary) {
   std::vector<Border> borders;
-  BorderScan scan(binary);
+  std::vector<cv::Point> buffer;
+  BorderScan scan(binary, buffer);
   Border b;
   while (scan.Next(b.points)) {
     b.box = cv::boundingRect(b.points);
