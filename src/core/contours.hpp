@@ -19,7 +19,8 @@ constexpr uchar kForeground = 1;
 /// function lists the same borders, last found first.
 class BorderScan {
  public:
-  /// `buffer` holds each border's points in turn (its size is its own: at least the longest border's).
+  /// Each border's points are written to the front of `buffer`, in turn: it grows to the longest
+  /// border and is not shrunk, so its size is not the border's (size() is).
   BorderScan(cv::Mat& binary, std::vector<cv::Point>& buffer);
 
   /// The next border in raster order: false when there is none left. Its points, every pixel of it
