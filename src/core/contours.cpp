@@ -131,11 +131,14 @@ ARUCOTAG_INLINE uchar At(const uchar* here, const uchar* up, const uchar* down) 
 // The step to the neighbour in direction D (0 right, counter-clockwise) of a row `step` bytes long.
 constexpr ptrdiff_t Offset(int d, ptrdiff_t step) { return kDx[d & 7] + kDy[d & 7] * step; }
 
-// Follow's buffer grown (out of line: a border rarely outgrows it); `out`, where the next point
-// goes, moved with it.
+// Points Follow's buffer holds at first (it doubles when a border outgrows it).
+constexpr size_t kFirstBufferPoints = 256;
+
+// Follow's buffer (never empty) doubled, out of line: a border rarely outgrows it; `out`, where the
+// next point goes, moved with it.
 __attribute__((noinline)) cv::Point* Grow(std::vector<cv::Point>& buffer, cv::Point* out) {
   const size_t used = static_cast<size_t>(out - buffer.data());
-  buffer.resize(std::max<size_t>(256, 2 * buffer.size()));
+  buffer.resize(2 * buffer.size());
   return buffer.data() + used;
 }
 
@@ -205,7 +208,7 @@ ARUCOTAG_INLINE bool Move(uchar*& here, ptrdiff_t step, const uchar* start, cons
 int Follow(uchar* start, ptrdiff_t step, cv::Point pt, bool hole, std::vector<cv::Point>& buffer) {
   const ptrdiff_t offset[8] = {Offset(0, step), Offset(1, step), Offset(2, step), Offset(3, step),
                                Offset(4, step), Offset(5, step), Offset(6, step), Offset(7, step)};
-  if (buffer.empty()) buffer.resize(256);
+  if (buffer.empty()) buffer.resize(kFirstBufferPoints);
   cv::Point* out = buffer.data();
   cv::Point* room = buffer.data() + buffer.size();
   int x = pt.x, y = pt.y;
