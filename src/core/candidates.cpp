@@ -535,12 +535,25 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
 }
 
 void SortQuads(std::vector<Quad>& quads) {
-  const auto key = [](const Quad& q) {
-    return std::make_tuple(q.level, q.corners[0].y, q.corners[0].x, q.corners[1].y, q.corners[1].x, q.corners[2].y,
-                           q.corners[2].x, q.corners[3].y, q.corners[3].x, q.area, q.perimeter, q.box.y, q.box.x,
-                           q.box.height, q.box.width, q.hole);
+  // Lexicographic on (level, corners as y then x, area, perimeter, box as y, x, height, width, hole),
+  // field by field until two differ (nearly always the first corner's): comparing std::tuples of all
+  // sixteen fields built both whole first: the sort was 1.9 % of Detect's instructions on 640x480
+  // frames of 50 markers (callgrind, 6 frames: 103.18 -> 102.67 M; 20 markers 71.28 -> 71.05 M). The
+  // same order (fully equal quads are the same quad).
+  const auto before = [](const Quad& a, const Quad& b) {
+    if (a.level != b.level) return a.level < b.level;
+    for (int i = 0; i < 4; ++i) {
+      if (a.corners[i].y < b.corners[i].y) return true;
+      if (b.corners[i].y < a.corners[i].y) return false;
+      if (a.corners[i].x < b.corners[i].x) return true;
+      if (b.corners[i].x < a.corners[i].x) return false;
+    }
+    if (a.area < b.area) return true;
+    if (b.area < a.area) return false;
+    return std::make_tuple(a.perimeter, a.box.y, a.box.x, a.box.height, a.box.width, a.hole) <
+           std::make_tuple(b.perimeter, b.box.y, b.box.x, b.box.height, b.box.width, b.hole);
   };
-  std::sort(quads.begin(), quads.end(), [&](const Quad& a, const Quad& b) { return key(a) < key(b); });
+  std::sort(quads.begin(), quads.end(), before);
 }
 
 // Whether two quads are one candidate for cv::aruco's _filterTooCloseCandidates: their corners (in
