@@ -536,10 +536,10 @@ void CompleteSeams(const Pyramid& pyramid, const std::vector<SearchTask>& tasks,
 
 void SortQuads(std::vector<Quad>& quads) {
   // Lexicographic on (level, corners as y then x, area, perimeter, box as y, x, height, width, hole),
-  // field by field until two differ (nearly always the first corner's): comparing std::tuples of all
-  // sixteen fields built both whole first: the sort was 1.9 % of Detect's instructions on 640x480
-  // frames of 50 markers (callgrind, 6 frames: 103.18 -> 102.67 M; 20 markers 71.28 -> 71.05 M). The
-  // same order (fully equal quads are the same quad).
+  // compared field by field until two differ (nearly always at the first corner). Comparing two
+  // std::tuples of all sixteen fields built both tuples whole first, and the sort was 1.9 % of
+  // Detect's instructions on 640x480 frames of 50 markers (callgrind, 6 frames: 103.18 -> 102.67 M; 20
+  // markers 71.28 -> 71.05 M). The same order: quads equal in every field are the same quad.
   const auto before = [](const Quad& a, const Quad& b) {
     if (a.level != b.level) return a.level < b.level;
     for (int i = 0; i < 4; ++i) {

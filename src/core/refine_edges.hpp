@@ -11,11 +11,11 @@ namespace arucotag::internal {
 /// corners (RefineCornersOnEdgesSettled). The passes contract: after a full pass that moved a corner
 /// by up to this, the next moves it by a few thousandths (640x480/50: 0.040 px, then 0.006 px at the
 /// median), so the fit is that close to its fixed point. At 0.05 px a third of the small markers paid
-/// for a second full pass (or a check pass) to show it; at 0.1 px (stop 62) the same ids and
-/// pattern-fit choices over bench_dump's corpus, corners moved by 0.002 px at the median of the 381 of
-/// 2508 that moved (at most 0.067 px, one photo marker), the probe's corner errors on the bench renders within
-/// 0.0004 px at the median (640x480/50 0.0261 -> 0.0265) and the same p95 to 0.0012 px; callgrind of
-/// Detect on 640x480/50 108.85 -> 103.18 M, /20 73.69 -> 71.28 M.
+/// for a second full pass (or a check pass) to show it. At 0.1 px (stop 62), over bench_dump's corpus:
+/// the same ids and pattern-fit choices; 381 of 2508 markers' corners moved, by 0.002 px at the median
+/// (at most 0.067 px, one photo marker). The probe's corner errors on the bench renders: medians within
+/// 0.0004 px (640x480/50 0.0261 -> 0.0265), p95s within 0.0012 px. Callgrind of Detect on 640x480/50
+/// 108.85 -> 103.18 M, /20 73.69 -> 71.28 M.
 inline constexpr double kEdgeFitSettledPx = 0.1;
 
 /// One pass of RefineCornersOnEdges (which makes two or three): for a tracked marker whose pattern fit
