@@ -115,6 +115,10 @@ template <int W>
 ARUCOTAG_INLINE void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
   constexpr int r = W / 2;
   constexpr int area = W * W;
+  // 2 (src + delta) area <= 2 sum + area holds, for integers and an odd area, exactly where
+  // sum > src area + delta area - (area + 1) / 2: one signed 16-bit comparison a pixel (Threshold
+  // checks that both sides fit).
+  const int16_t bias = static_cast<int16_t>(delta * area - (area + 1) / 2);
   const int w = src.cols, h = src.rows;
   out.create(h + 2, w + 2, CV_8UC1);
   out.row(0).setTo(0);
@@ -144,9 +148,8 @@ ARUCOTAG_INLINE void BoxThreshold(const cv::Mat& src, int delta, cv::Mat& out) {
     for (int x = 0; x < w; ++x) {
       uint16_t sum = 0;
       for (int k = 0; k < W; ++k) sum = static_cast<uint16_t>(sum + c[x + k]);
-      const uint16_t lhs = static_cast<uint16_t>((in[x] + delta) * (2 * area));
-      const uint16_t rhs = static_cast<uint16_t>(2 * sum + area);
-      dst[x + 1] = lhs <= rhs ? kForeground : kBackground;
+      const int16_t limit = static_cast<int16_t>(in[x] * area + bias);
+      dst[x + 1] = static_cast<int16_t>(sum) > limit ? kForeground : kBackground;
     }
   }
 }
@@ -158,8 +161,8 @@ ARUCOTAG_VECTOR_CLONES void BoxThreshold11(const cv::Mat& src, int delta, cv::Ma
 
 void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   const int delta = cvFloor(constant);
-  // 16-bit headroom: (255 + delta) * 2 * W^2 must fit.
-  const bool fits = delta >= 0 && (255 + delta) * 2 * window * window <= 65535;
+  // 16-bit headroom: (255 + delta) * W^2 must fit an int16_t.
+  const bool fits = delta >= 0 && (255 + delta) * window * window <= 32767;
   if (fits && window == 5) return BoxThreshold5(src, delta, out);
   if (fits && window == 7) return BoxThreshold7(src, delta, out);
   if (fits && window == 11) return BoxThreshold11(src, delta, out);
