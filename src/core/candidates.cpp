@@ -159,6 +159,8 @@ ARUCOTAG_VECTOR_CLONES void BoxThreshold5(const cv::Mat& src, int delta, cv::Mat
 ARUCOTAG_VECTOR_CLONES void BoxThreshold7(const cv::Mat& src, int delta, cv::Mat& out) { BoxThreshold<7>(src, delta, out); }
 ARUCOTAG_VECTOR_CLONES void BoxThreshold11(const cv::Mat& src, int delta, cv::Mat& out) { BoxThreshold<11>(src, delta, out); }
 
+}  // namespace
+
 void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   const int delta = cvFloor(constant);
   // 16-bit headroom: (255 + delta) * W^2 must fit an int16_t.
@@ -170,6 +172,8 @@ void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out) {
   cv::adaptiveThreshold(src, binary, kForeground, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window, constant);
   cv::copyMakeBorder(binary, out, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
 }
+
+namespace {
 
 // Share of dark (foreground) pixels of `binary` (with its 1-pixel frame; `q` in the coordinates
 // without it) at 32 points along the ring at grid offset t inside quad q (t < 0: outside).

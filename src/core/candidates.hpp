@@ -43,6 +43,13 @@ struct Quad {
 /// region of a bigger image stays one).
 void HalveArea(const cv::Mat& src, cv::Mat& dst, int threads = 0);
 
+/// cv::adaptiveThreshold(src, binary, 1, ADAPTIVE_THRESH_MEAN_C, THRESH_BINARY_INV, window, constant)
+/// with a 1-pixel zero frame around it (what BorderScan reads), of a CV_8UC1 image: kForeground
+/// where src + floor(constant) <= round(box mean), edges replicated. Windows 5, 7 and 11 with
+/// 0 <= floor(constant) (and (255 + floor(constant)) * window^2 < 2^15) take 16-bit box sums, the
+/// rest cv::adaptiveThreshold itself; the same pixels either way.
+void Threshold(const cv::Mat& src, int window, double constant, cv::Mat& out);
+
 /// The frame at full, half and quarter resolution (INTER_AREA), level 0 sharing the caller's pixels;
 /// built on at most `threads` threads (DetectorConfig::threads).
 struct Pyramid {

@@ -14,6 +14,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "candidates.hpp"
+#include "contours.hpp"
 #include "identify.hpp"
 #include "refine_edges.hpp"
 #include "scene.hpp"
@@ -248,6 +249,47 @@ TEST(FastPath, HalvingMatchesInterArea) {
   outside(to).setTo(7);
   EXPECT_EQ(cv::countNonZero(outside != 7), 0);
   std::printf("%d halved pixels compared\n", pixels);
+}
+
+// The candidate search's threshold is cv::adaptiveThreshold's, pixel for pixel, on the windows and
+// constants it takes 16-bit box sums for and on those it hands to OpenCV: real photos, noise, flat
+// images at both ends of the grey range (the largest sums and the smallest), odd sizes, a region of a
+// bigger image.
+TEST(FastPath, ThresholdMatchesAdaptiveThreshold) {
+  std::vector<std::pair<std::string, cv::Mat>> images;
+  for (const char* name : {"opencv_tutorial/singlemarkersoriginal.jpg", "ubiquity_fiducials/tag_245-246_d7_14cm.png"}) {
+    images.emplace_back(name, cv::imread(std::string(ARUCOTAG_TEST_DATA) + "/" + name, cv::IMREAD_GRAYSCALE));
+    ASSERT_FALSE(images.back().second.empty()) << name;
+  }
+  cv::RNG rng(47);
+  for (const cv::Size& size : {cv::Size(641, 480), cv::Size(13, 9), cv::Size(5, 40)}) {
+    cv::Mat noise(size, CV_8UC1);
+    rng.fill(noise, cv::RNG::UNIFORM, 0, 256);
+    images.emplace_back("noise", noise);
+  }
+  images.emplace_back("black", cv::Mat(60, 70, CV_8UC1, cv::Scalar(0)));
+  images.emplace_back("white", cv::Mat(60, 70, CV_8UC1, cv::Scalar(255)));
+  cv::Mat big(300, 400, CV_8UC1);
+  rng.fill(big, cv::RNG::UNIFORM, 0, 256);
+  images.emplace_back("region", big(cv::Rect(17, 31, 201, 150)));
+  int pixels = 0;
+  for (const auto& [name, grey] : images) {
+    for (int window : {3, 5, 7, 11, 23}) {
+      for (double constant : {0.0, 3.0, 7.0, 7.9, 15.0, 23.0, -2.0}) {
+        cv::Mat binary, expected;
+        cv::adaptiveThreshold(grey, binary, internal::kForeground, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV,
+                              window, constant);
+        cv::copyMakeBorder(binary, expected, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+        cv::Mat out;
+        internal::Threshold(grey, window, constant, out);
+        ASSERT_EQ(out.size(), expected.size()) << name;
+        ASSERT_EQ(cv::norm(out, expected, cv::NORM_INF), 0.0)
+            << name << " window " << window << " constant " << constant;
+        pixels += static_cast<int>(grey.total());
+      }
+    }
+  }
+  std::printf("%d thresholded pixels compared\n", pixels);
 }
 
 // The default refinement (edge fit) and cv::aruco's sub-pixel one, both supported by the fast path.
