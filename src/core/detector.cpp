@@ -471,30 +471,56 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
       for (size_t i = 0; i < tags.size(); ++i) {
         if (!edges_fitted[i] && carried(i) && !fitted[i]) internal::RefineCornersOnEdgesOnce(grey, tags[i].corners, cells);
       }
+      // One marker's fit (small[k]); false when it is not trusted and the edge fit's corners stay. A
+      // cold fit starts from `frame_blur` when it is known (below), else from kStartBlurVariances.
+      float frame_blur = -1.0f;
+      const auto fit = [&](size_t k) {
+        const size_t i = small[k].second;
+        ArucoTag& tag = tags[i];
+        const cv::Mat black = MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits);
+        // A tracked marker's fit starts from last frame's: its blur (one start instead of four),
+        // and its corners where the edge fit puts them plus the offset the pattern fit added last
+        // frame (the edge fit's bias changes little from frame to frame), so that one unverified
+        // Gauss-Newton step usually ends it.
+        const internal::FitMemory& before = last[i];
+        const std::array<cv::Point2f, 4> edges = tag.corners;
+        if (carried(i)) {
+          for (int c = 0; c < 4; ++c) tag.corners[c] += before.offset[c];
+        }
+        float variance = carried(i) ? before.blur : frame_blur;
+        anchored[i] = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance,
+                                                           carried(i) ? internal::kCarriedLastStep : internal::kColdLastStep);
+        if (!anchored[i]) {
+          tag.corners = edges;
+          return false;
+        }
+        tag.pattern_fitted = true;
+        fits[i].blur = variance;
+        for (int c = 0; c < 4; ++c) fits[i].offset[c] = tag.corners[c] - edges[c];
+        return true;
+      };
+      // The markers of one frame share its lens and focus: a cold fit starts from the blur variance
+      // another fit of this frame found (one start instead of three or four), that of the largest
+      // marker the second chance fitted, else that of the largest cold one here, fitted first. Which
+      // fit leads depends on the markers alone, so the corners are the same at any thread count.
+      // Callgrind of Detect (6 frames, 1 thread): 640x480/20 70.20 -> 67.11 M, /50 102.53 -> 100.45 M,
+      // tag36h11 at 720p 88.36 -> 86.52 M, distant 117.86 -> 116.01 M; corner medians within 0.0002 px.
+      float lead_side = 0.0f;
+      for (size_t i = 0; i < tags.size(); ++i) {
+        const float side = internal::MeanSide(tags[i].corners);
+        if (tags[i].pattern_fitted && side > lead_side) {
+          lead_side = side;
+          frame_blur = checked[i].blur;
+        }
+      }
+      int lead = -1;
+      for (int k = static_cast<int>(small.size()) - 1; k >= 0 && lead < 0 && frame_blur < 0.0f; --k) {
+        if (!carried(small[k].second)) lead = k;
+      }
+      if (lead >= 0 && fit(static_cast<size_t>(lead))) frame_blur = fits[small[lead].second].blur;
       internal::ParallelFor(cv::Range(0, static_cast<int>(small.size())), config.threads, [&](const cv::Range& range) {
         for (int k = range.start; k < range.end; ++k) {
-          const size_t i = small[k].second;
-          ArucoTag& tag = tags[i];
-          const cv::Mat black = MarkerCells(*detector.dictionary(), tag.id, config.marker_border_bits);
-          // A tracked marker's fit starts from last frame's: its blur (one start instead of four),
-          // and its corners where the edge fit puts them plus the offset the pattern fit added last
-          // frame (the edge fit's bias changes little from frame to frame), so that one unverified
-          // Gauss-Newton step usually ends it.
-          const internal::FitMemory& before = last[i];
-          const std::array<cv::Point2f, 4> edges = tag.corners;
-          if (carried(i)) {
-            for (int c = 0; c < 4; ++c) tag.corners[c] += before.offset[c];
-          }
-          float variance = before.blur;
-          anchored[i] = internal::RefineCornersOnPatternFrom(grey, black, tag.corners, variance,
-                                                             carried(i) ? internal::kCarriedLastStep : internal::kColdLastStep);
-          if (!anchored[i]) {
-            tag.corners = edges;
-            continue;
-          }
-          tag.pattern_fitted = true;
-          fits[i].blur = variance;
-          for (int c = 0; c < 4; ++c) fits[i].offset[c] = tag.corners[c] - edges[c];
+          if (k != lead) fit(static_cast<size_t>(k));
         }
       });
     }

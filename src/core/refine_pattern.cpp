@@ -706,8 +706,10 @@ ARUCOTAG_VECTOR_CLONES void Dots(const float* a, const float* b, size_t n, int c
   }
 }
 
-// Cost evaluations on this thread (internal::PatternFitEvaluations).
+// Cost evaluations on this thread (internal::PatternFitEvaluations), and the start's blur variances
+// tried (internal::PatternFitBlurStarts).
 thread_local size_t evaluations = 0;
+thread_local size_t blur_starts = 0;
 
 // Cost of the model at `params` and, with jtj/jtr, its Huber-weighted normal equations; with
 // `outliers`, the share of pixels the model misses by more than a quarter of its contrast. Per-pixel
@@ -834,6 +836,7 @@ bool FitPattern(const cv::Mat& grey, const cv::Mat& black, std::array<Vec2, 4>& 
       yy += grey_level * grey_level;
     }
     const auto try_variance = [&](double variance, bool keep, bool first_in_scan) {
+      ++blur_starts;
       fit.Blurred(variance, cover, nullptr);
       last = variance;
       double cover_sum = 0.0, cover_squares = 0.0, cross = 0.0;
@@ -988,6 +991,7 @@ cv::Mat PolygonCoverage(const std::vector<cv::Point2d>& polygon, const cv::Size&
 }
 
 size_t PatternFitEvaluations() { return evaluations; }
+size_t PatternFitBlurStarts() { return blur_starts; }
 
 size_t PatternFitSampleCount(const cv::Mat& grey, int cells, const std::array<cv::Point2f, 4>& corners) {
   cv::Mat patch;

@@ -23,6 +23,11 @@ cv::Mat PolygonCoverage(const std::vector<cv::Point2d>& polygon, const cv::Size&
 /// fits cost, counted rather than timed.
 size_t PatternFitEvaluations();
 
+/// How many blur variances the fits' starts have tried on this thread so far (each a blur of the
+/// coverage and a brightness-and-contrast fit): one for a fit given its start variance, three or four
+/// for one that scans kStartBlurVariances.
+size_t PatternFitBlurStarts();
+
 /// RefineCornersOnPattern with the fit's blur: `blur_variance` (px^2) in, the variance to start from
 /// (a tracked marker's fit of the last frame; < 0: the usual start, which tries four), out, the
 /// fitted one when it returns true. A Gauss-Newton step that moves no corner by `last_step` px or

@@ -255,6 +255,52 @@ TEST(PatternFit, CappedPerFrameSmallestFirst) {
   EXPECT_THROW(Detector{capped}, Error);
 }
 
+// The markers of one frame share its blur: Detect fits one of them from the usual start (three or four
+// blur variances tried) and starts the others from the variance it found (one each). Six markers of
+// 24-38 px, blurred 0.5 and then 0.9 px: the starts tried, and each marker's corners against its fit
+// from the usual start (the same edge-fit corners) and against the truth.
+TEST(PatternFit, FrameMatesStartFromOneFitsBlur) {
+  const sim::Camera camera = test::RoverCamera();
+  const auto dictionary = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  std::vector<sim::Marker> markers;
+  for (int i = 0; i < 6; ++i) {
+    const double range = 4.0 + 0.45 * i;  // 37 down to 24 px
+    markers.push_back(sim::FacingCamera(i, 0.15, {(-0.5 + 0.2 * i) * range, 0.1 * range * (i % 2), range},
+                                        15.0 + 5.0 * i, 10.0, 12.0 * i));
+  }
+  for (const double blur : {0.5, 0.9}) {
+    sim::RenderOptions options;
+    options.blur_sigma = blur;
+    options.noise_sigma = 2.0;
+    cv::Mat grey;
+    PreprocessFrame(sim::RenderScene(camera, markers, options), grey);
+    DetectorConfig config;
+    config.threads = 1;  // every fit on this thread, where the starts are counted
+    DetectorConfig edge_only = config;
+    edge_only.pattern_fit_max_side = 0;
+    const auto by_id = [](const ArucoTag& a, const ArucoTag& b) { return a.id < b.id; };
+    auto edges = Detect(grey, Detector(edge_only));
+    const size_t before = internal::PatternFitBlurStarts();
+    auto fitted = Detect(grey, Detector(config));
+    const size_t starts = internal::PatternFitBlurStarts() - before;
+    ASSERT_EQ(edges.size(), markers.size()) << "blur " << blur;
+    ASSERT_EQ(fitted.size(), markers.size()) << "blur " << blur;
+    std::sort(edges.begin(), edges.end(), by_id);
+    std::sort(fitted.begin(), fitted.end(), by_id);
+    EXPECT_LE(starts, 4 + markers.size() - 1) << "blur " << blur;
+    for (size_t i = 0; i < markers.size(); ++i) {
+      ASSERT_TRUE(fitted[i].pattern_fitted) << "id " << i << ", blur " << blur;
+      std::array<cv::Point2f, 4> alone = edges[i].corners;
+      float variance = -1.0f;
+      ASSERT_TRUE(internal::RefineCornersOnPatternFrom(grey, MarkerCells(*dictionary, static_cast<int>(i)), alone,
+                                                       variance, internal::kColdLastStep))
+          << "id " << i << ", blur " << blur;
+      EXPECT_LT(MaxError(fitted[i].corners, alone), 0.01) << "id " << i << ", blur " << blur;
+      EXPECT_LT(MaxError(fitted[i].corners, sim::ProjectCorners(camera, markers[i])), 0.1) << "id " << i << ", blur " << blur;
+    }
+  }
+}
+
 // Six 0.15 m markers 40-56 px wide (2.9-3.4 m, tilted 22 degrees), rendered with `options`, and their true corners
 // by id.
 struct MidSizeScene {
