@@ -507,8 +507,9 @@ std::vector<ArucoTag> Detect(const cv::Mat& frame, const Detector& detector, con
       // tag36h11 at 720p 88.36 -> 86.52 M, distant 117.86 -> 116.01 M; corner medians within 0.0002 px.
       float lead_side = 0.0f;
       for (size_t i = 0; i < tags.size(); ++i) {
+        if (!tags[i].pattern_fitted) continue;
         const float side = internal::MeanSide(tags[i].corners);
-        if (tags[i].pattern_fitted && side > lead_side) {
+        if (side > lead_side) {
           lead_side = side;
           frame_blur = checked[i].blur;
         }
