@@ -24,7 +24,9 @@ inline int PopCount(uint64_t x) {
 struct DictionaryCodes {
   const uchar* data = nullptr;
   int rows = 0, cols = 0;
-  uint64_t checksum = 0;
+  // The bytes of every (rows / 16)th marker, as they were when the codes were made: a dictionary
+  // changed in place at the same address differs there (see CodesOf).
+  std::vector<uchar> sampled;
   std::vector<uint64_t> code;  // 4 per marker: rotations 0..3
 };
 

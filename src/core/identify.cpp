@@ -31,18 +31,25 @@ const DictionaryCodes& CodesOf(const cv::aruco::Dictionary& dictionary) {
   thread_local DictionaryCodes cache;
   const cv::Mat& list = dictionary.bytesList;
   const int nbytes = (dictionary.markerSize * dictionary.markerSize + 7) / 8;
-  uint64_t checksum = 0;
-  for (int m = 0; m < list.rows; m += std::max(1, list.rows / 16)) {
-    for (int k = 0; k < 4 * nbytes; ++k) checksum = checksum * 131 + list.ptr(m)[k];
-  }
-  if (cache.data == list.data && cache.rows == list.rows && cache.cols == list.cols && cache.checksum == checksum) {
-    return cache;
-  }
+  // Every (rows / 16)th marker's bytes compared with those the cache was made from: at most 16 runs of
+  // 4 nbytes bytes, a few memcmp calls. (A checksum of them, a multiply-add a byte in one chain, was
+  // about 1 % of Detect's time on 640x480 frames of 50 markers, where every candidate looks up codes.)
+  const int stride = std::max(1, list.rows / 16);
+  const size_t run = static_cast<size_t>(4 * nbytes);
+  const auto same_samples = [&] {
+    if (cache.data != list.data || cache.rows != list.rows || cache.cols != list.cols) return false;
+    const uchar* kept = cache.sampled.data();
+    for (int m = 0; m < list.rows; m += stride, kept += run) {
+      if (std::memcmp(kept, list.ptr(m), run) != 0) return false;
+    }
+    return true;
+  };
+  if (same_samples()) return cache;
   cache = DictionaryCodes();
   cache.data = list.data;
   cache.rows = list.rows;
   cache.cols = list.cols;
-  cache.checksum = checksum;
+  for (int m = 0; m < list.rows; m += stride) cache.sampled.insert(cache.sampled.end(), list.ptr(m), list.ptr(m) + run);
   // Every predefined dictionary (the only ones a Detector builds) has at most 7x7 = 49 bits.
   CV_Assert(nbytes <= 8);
   cache.code.resize(static_cast<size_t>(list.rows) * 4);

@@ -377,12 +377,15 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
         low = i;
       }
     }
+    // Without a branch: which sample is the lightest is as good as random along the light half (noise
+    // on a flat), and a branch on it mispredicted once or twice a profile (callgrind's branch
+    // simulation, 640x480/50: 42 k of FitEdge's 111 k mispredictions). The maximum is taken as is (equal
+    // values are the same value) and the index moved by a mask where the sample is at least as light.
     double lightest_value = profile[half];
     for (int i = half + 1; i < samples; ++i) {
-      if (profile[i] >= lightest_value) {
-        lightest_value = profile[i];
-        high = i;
-      }
+      const int lighter = -static_cast<int>(profile[i] >= lightest_value);
+      high += (i - high) & lighter;
+      lightest_value = std::max(lightest_value, profile[i]);
     }
     if (profile[high] - profile[low] < 10.0 * kFixedGrey) continue;  // too little contrast to place an edge
     bases[read] = base;

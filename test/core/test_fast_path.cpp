@@ -213,6 +213,34 @@ TEST(FastPath, CanonicalSamplingMatchesWarpPerspectivesRounding) {
   EXPECT_GT(ties, 1000);
 }
 
+// The codes cached for a dictionary are made again when its bytes change where they are: a
+// dictionary edited in place (two markers' codes swapped, the same bytesList buffer) reads by its new
+// codes, not by those the cache kept for that address.
+TEST(FastPath, CodeCacheFollowsADictionaryChangedInPlace) {
+  cv::aruco::Dictionary dictionary = *cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  dictionary.bytesList = dictionary.bytesList.clone();
+  const uchar* const buffer = dictionary.bytesList.data;
+  cv::Mat marker;
+  cv::aruco::drawMarker(cv::makePtr<cv::aruco::Dictionary>(dictionary), 3, 120, marker);
+  cv::Mat grey(200, 200, CV_8UC1, cv::Scalar(255));
+  marker.copyTo(grey(cv::Rect(40, 40, 120, 120)));
+  const std::array<cv::Point2f, 4> corners = {cv::Point2f(39.5f, 39.5f), cv::Point2f(159.5f, 39.5f),
+                                              cv::Point2f(159.5f, 159.5f), cv::Point2f(39.5f, 159.5f)};
+  const auto params = cv::aruco::DetectorParameters::create();
+  int id = -1, rotation = -1;
+  ASSERT_TRUE(internal::Identify(grey, corners, dictionary, *params, id, rotation));
+  EXPECT_EQ(id, 3);
+  EXPECT_EQ(rotation, 0);
+  // Markers 3 and 7 trade codes in place: the drawing of 3 is now marker 7's code.
+  cv::Mat three = dictionary.bytesList.row(3).clone();
+  dictionary.bytesList.row(7).copyTo(dictionary.bytesList.row(3));
+  three.copyTo(dictionary.bytesList.row(7));
+  ASSERT_EQ(dictionary.bytesList.data, buffer);
+  ASSERT_TRUE(internal::Identify(grey, corners, dictionary, *params, id, rotation));
+  EXPECT_EQ(id, 7);
+  EXPECT_EQ(rotation, 0);
+}
+
 // The pyramid's halving (its own 2x2 average where the CPU has AVX2) against cv::resize's INTER_AREA,
 // pixel for pixel: random images of even and odd sizes, widths either side of its 32-pixel steps, every
 // pixel sum's remainder (the rounding), regions of a bigger image in and out, and the sizes the
