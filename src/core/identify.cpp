@@ -202,10 +202,19 @@ bool Identify(const cv::Mat& grey, const std::array<cv::Point2f, 4>& corners, co
     int64_t level_sum = 0;
     for (int i = 0; i < 256; ++i) level_sum += i * histogram[i];
     const double mu = static_cast<double>(level_sum) * scale;
+    // The levels that occur listed first, without a branch (a store at every level, the count moved
+    // where it occurs): a test per level of which are empty mispredicted about one level in ten
+    // (callgrind's branch simulation, 640x480/50: 26 k of Identify's 45 k mispredictions).
+    int levels[256];
+    int occurring = 0;
+    for (int i = 0; i < 256; ++i) {
+      levels[occurring] = i;
+      occurring += histogram[i] != 0;
+    }
     double mu1 = 0.0, q1 = 0.0, max_sigma = 0.0;
     int threshold = 0;
-    for (int i = 0; i < 256; ++i) {
-      if (!histogram[i]) continue;
+    for (int k = 0; k < occurring; ++k) {
+      const int i = levels[k];
       const double p_i = histogram[i] * scale;
       mu1 *= q1;
       q1 += p_i;
