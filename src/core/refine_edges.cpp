@@ -379,7 +379,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     }
     // Without a branch: which sample is the lightest is as good as random along the light half (noise
     // on a flat), and a branch on it mispredicted once or twice a profile (callgrind's branch
-    // simulation, 640x480/50: 42 k of FitEdge's 111 k mispredictions). The maximum is taken as is (equal
+    // simulation, 640x480/50: 40 k of FitEdge's 96 k mispredictions). The maximum is taken as is (equal
     // values are the same value) and the index moved by a mask where the sample is at least as light.
     double lightest_value = profile[half];
     for (int i = half + 1; i < samples; ++i) {
