@@ -10,6 +10,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <iterator>
 #include <limits>
@@ -180,6 +181,25 @@ int WholeCell(const cv::Point2d& a, const cv::Point2d& b, const cv::Point2d& c, 
   return cy * n + cx;
 }
 
+// A pixel's cells and their weights (sixteenths, exact) from CoverageSampleCells's cells, in
+// ascending cell order: what CoverageCounts gives, for the pixels it leaves (samples over more than
+// three columns or rows of cells).
+int CountSampleCells(const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy, const cv::Point2d& dxy,
+                     int n, int* cells, int* counts) {
+  int sample_cells[kCoverageSamples * kCoverageSamples];
+  CoverageSampleCells(p00, dx, dy, dxy, n, sample_cells);
+  std::sort(std::begin(sample_cells), std::end(sample_cells));
+  int found = 0;
+  for (int i = 0; i < kCoverageSamples * kCoverageSamples; ++i) {
+    if (found == 0 || cells[found - 1] != sample_cells[i]) {
+      cells[found] = sample_cells[i];
+      counts[found++] = 0;
+    }
+    ++counts[found - 1];
+  }
+  return found;
+}
+
 thread_local size_t cell_estimates = 0;  // SmallCellEstimates
 
 // The grey level of each of the n x n cells of the black square h maps the unit square onto, by
@@ -213,9 +233,9 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
     lhs[static_cast<size_t>(a) * unknowns + a] = 0.0;
   }
   std::vector<double> rhs(unknowns, 0.0);
-  std::vector<double> weight(unknowns);
-  // The unknowns a pixel's samples fall in (each sample adds one at most).
-  int touched[kCoverageSamples * kCoverageSamples];
+  // The unknowns a pixel covers, ascending, and their weights (at most one per sample).
+  int touched[kCoverageSamples * kCoverageSamples], counts[kCoverageSamples * kCoverageSamples];
+  double weight[kCoverageSamples * kCoverageSamples];
   // Cell coordinates (unit square x n) of the pixel corners: within a pixel the homography is affine
   // to a ten-thousandth of a cell at these sizes, so each pixel's samples are interpolated between
   // its corners instead of each taking a projective division.
@@ -236,52 +256,34 @@ bool EstimateCells(const cv::Mat& grey, const cv::Matx33d& h, int n, std::vector
       const cv::Vec3d c = to_unit * cv::Vec3d(x, y, 1.0);
       const double cu = c[0] / c[2], cv_ = c[1] / c[2];
       if (cu < -margin || cv_ < -margin || cu > 1.0 + margin || cv_ > 1.0 + margin) continue;
-      int touches = 0;
+      int touches = 1;
       const cv::Point2d* g = &grid_points[static_cast<size_t>(y - box.y) * gw + (x - box.x)];
       // The samples are convex combinations of the pixel's corners: when all four corners fall in
       // one cell, or on the outer side of one of the square's edges, so do all the samples, and the
       // pixel is that cell's (or the quiet zone's) whole (16 sixteenths add up to exactly 1).
-      const int whole = WholeCell(g[0], g[1], g[gw], g[gw + 1], n);
-      if (whole >= 0) {
-        touched[touches++] = whole;
-        weight[whole] = 1.0;
+      touched[0] = WholeCell(g[0], g[1], g[gw], g[gw + 1], n);
+      if (touched[0] >= 0) {
+        weight[0] = 1.0;
       } else {
         const cv::Point2d dx = g[1] - g[0], dy = g[gw] - g[0], dxy = g[gw + 1] - g[gw] - dx;
-        int sample_cells[kCoverageSamples * kCoverageSamples];
-        CoverageSampleCells(g[0], dx, dy, dxy, n, sample_cells);
-        // Neighbouring samples mostly share a cell: each run of one cell is added at once (sixteenths,
-        // exact in a double, so the same weights), rather than a read and a write of its weight per
-        // sample, each waiting on the last.
-        const auto add = [&](int k, int run) {
-          if (weight[k] == 0.0) touched[touches++] = k;
-          weight[k] += run * (1.0 / (kCoverageSamples * kCoverageSamples));
-        };
-        int run = 1;
-        for (int i = 1; i < kCoverageSamples * kCoverageSamples; ++i) {
-          if (sample_cells[i] == sample_cells[i - 1]) {
-            ++run;
-          } else {
-            add(sample_cells[i - 1], run);
-            run = 1;
-          }
-        }
-        add(sample_cells[kCoverageSamples * kCoverageSamples - 1], run);
+        touches = CoverageCounts(g[0], dx, dy, dxy, n, touched, counts);
+        if (touches < 0) touches = CountSampleCells(g[0], dx, dy, dxy, n, touched, counts);
+        for (int i = 0; i < touches; ++i) weight[i] = counts[i] * (1.0 / (kCoverageSamples * kCoverageSamples));
       }
+      // Every weight a multiple of 1/16 and every product of two of 1/256: the sums below are exact
+      // in any order (the same matrix whatever way a pixel's cells were counted).
       const double value = grey.at<uchar>(y, x);
-      const int lowest = *std::min_element(touched, touched + touches);
+      const int lowest = touched[0];
       for (int i = 0; i < touches; ++i) {
         const int a = touched[i];
-        rhs[a] += weight[a] * value;
+        rhs[a] += weight[i] * value;
         double* row = lhs + static_cast<size_t>(a) * unknowns;
         if (lowest < first[a]) {
           std::fill(row + lowest, row + first[a], 0.0);
           first[a] = lowest;
         }
-        for (int j = 0; j < touches; ++j) {
-          if (touched[j] <= a) row[touched[j]] += weight[a] * weight[touched[j]];
-        }
+        for (int j = 0; j <= i; ++j) row[touched[j]] += weight[i] * weight[j];
       }
-      for (int i = 0; i < touches; ++i) weight[touched[i]] = 0.0;
       sum += value;
       ++rows;
     }
@@ -691,6 +693,60 @@ ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CoverageSampleCells(c
     const Int4 cell = __builtin_convertvector(inside ? row_start + cx : side * side, Int4);
     std::memcpy(cells + j * kCoverageSamples, &cell, sizeof cell);
   }
+}
+
+ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD int CoverageCounts(const cv::Point2d& p00, const cv::Point2d& dx,
+                                                                         const cv::Point2d& dy, const cv::Point2d& dxy,
+                                                                         int n, int* cells, int* counts) {
+  static_assert(kCoverageSamples == 4, "a row of samples is one vector");
+  // The pixel's corners bound its samples (convex combinations of them, to a rounding of 1e-14 at
+  // most at these coordinates). Cells from (cx0, cy0): with the corners kMargin clear of the cell
+  // lines that bound three columns and rows of them, each sample's column is cx0 plus the count of
+  // the two lines between it passes, exactly the floor CoverageSampleCells takes.
+  constexpr double kMargin = 1e-9;
+  const cv::Point2d p10 = p00 + dx, p01 = p00 + dy, p11 = p01 + dx + dxy;
+  const double lo_x = std::min({p00.x, p10.x, p01.x, p11.x}), hi_x = std::max({p00.x, p10.x, p01.x, p11.x});
+  const double lo_y = std::min({p00.y, p10.y, p01.y, p11.y}), hi_y = std::max({p00.y, p10.y, p01.y, p11.y});
+  // In [0, n] (std::max keeps 0 for a NaN, which the tests below then refuse).
+  const int cx0 = FloorInt(std::min(std::max(0.0, lo_x), n - 1.0)), cy0 = FloorInt(std::min(std::max(0.0, lo_y), n - 1.0));
+  const bool fits_x = hi_x <= cx0 + 3 - kMargin && (lo_x < 0.0 || lo_x >= cx0 + kMargin);
+  const bool fits_y = hi_y <= cy0 + 3 - kMargin && (lo_y < 0.0 || lo_y >= cy0 + kMargin);
+  if (!(fits_x && fits_y)) return -1;
+  // Each sample adds one to a 6-bit count (16 at most) of its slot: row * 3 + column of the 3 x 3
+  // cells from (cx0, cy0), or kOutside outside the square. Ten counts fill 60 bits.
+  typedef int64_t Long4 __attribute__((vector_size(4 * sizeof(int64_t))));
+  constexpr int kSlotBits = 6, kOutside = 9;
+  const Double4 along = {0.125, 0.375, 0.625, 0.875};  // (i + 0.5) / 4, exact
+  const double side = n, x1 = cx0 + 1, x2 = cx0 + 2, y1 = cy0 + 1, y2 = cy0 + 2;
+  const Long4 one = {1, 1, 1, 1}, outside = one * (kOutside * kSlotBits);
+  Long4 sums = {0, 0, 0, 0};
+  for (int j = 0; j < kCoverageSamples; ++j) {
+    // The samples' cell coordinates in CoverageSampleCells's arithmetic, operation for operation.
+    const double fy = (j + 0.5) / kCoverageSamples;
+    const double down_x = dy.x * fy, down_y = dy.y * fy, bend_x = dxy.x * fy, bend_y = dxy.y * fy;
+    const double row_x = p00.x + down_x, row_y = p00.y + down_y;
+    const double step_x = dx.x + bend_x, step_y = dx.y + bend_y;
+    const Double4 offset_x = step_x * along, offset_y = step_y * along;
+    const Double4 x = row_x + offset_x, y = row_y + offset_y;
+    const Long4 inside = (x >= 0.0) & (x < side) & (y >= 0.0) & (y < side);
+    // Comparisons give -1 where true: minus the lines passed, times the slot's bits.
+    const Long4 column = (x >= x1) + (x >= x2), row = (y >= y1) + (y >= y2);
+    const Long4 shift = inside ? -(row * 3 + column) * kSlotBits : outside;
+    sums += one << shift;
+  }
+  uint64_t total = static_cast<uint64_t>(sums[0] + sums[1] + sums[2] + sums[3]);
+  // The slots with a count (bit 0 of each field set where any of its five low bits is), in order:
+  // the cells ascending (n > 2), the outside (n * n) last.
+  constexpr uint64_t kFieldBits = 0x041041041041041ull;  // bit 0 of each of the ten fields
+  uint64_t used = (total | total >> 1 | total >> 2 | total >> 3 | total >> 4) & kFieldBits;
+  static constexpr int kRow[] = {0, 0, 0, 1, 1, 1, 2, 2, 2}, kColumn[] = {0, 1, 2, 0, 1, 2, 0, 1, 2};
+  int found = 0;
+  for (; used != 0; used &= used - 1) {
+    const int bit = __builtin_ctzll(used), k = bit / kSlotBits;
+    cells[found] = k == kOutside ? n * n : (cy0 + kRow[k]) * n + cx0 + kColumn[k];
+    counts[found++] = static_cast<int>((total >> bit) & ((1u << kSlotBits) - 1));
+  }
+  return found;
 }
 
 bool SolveEnvelope(cv::Mat& normal, cv::Mat& rhs) {

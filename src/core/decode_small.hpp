@@ -44,6 +44,14 @@ constexpr int kCoverageSamples = 4;
 void CoverageSampleCells(const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy, const cv::Point2d& dxy,
                          int n, int* cells);
 
+/// The cells of a pixel's samples as CoverageSampleCells places them, and how many samples fall in
+/// each: `cells` ascending (n * n, outside the square, last) and `counts` alongside; returns how many
+/// cells. Only for a pixel whose corners lie within three columns and three rows of cells, clear of
+/// their lines by 1e-9 cells (nearly every pixel of a marker over a pixel per cell): -1 otherwise,
+/// with nothing counted. n > 2.
+int CoverageCounts(const cv::Point2d& p00, const cv::Point2d& dx, const cv::Point2d& dy, const cv::Point2d& dxy, int n,
+                   int* cells, int* counts);
+
 /// Solves normal * x = rhs (CV_64F, normal symmetric positive definite, rhs one column) as
 /// cv::solve(DECOMP_CHOLESKY) does, visiting only each row's envelope (from its first non-zero on):
 /// the cell estimate's normal matrix couples each cell with its neighbours alone, so this costs a

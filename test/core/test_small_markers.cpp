@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -143,6 +144,76 @@ TEST(SmallMarkers, CoverageSamplesLandInTheScalarFormulasCells) {
   std::printf("%d samples, %d outside the square, %d on a cell line\n", compared, outside, on_line);
   EXPECT_GT(outside, compared / 10);
   EXPECT_GT(on_line, 10000);
+}
+
+// The counted cells of a pixel against CoverageSampleCells's sixteen, counted one by one: the same
+// cells with the same counts wherever CoverageCounts takes the pixel, which it must do for nearly
+// every pixel a marker over a pixel per cell gives; it leaves only pixels over more than three
+// columns or rows of cells, or within 1e-9 of the lines bounding them. Corners exactly on cell lines
+// (a pixel grid aligned with the cells), an ulp either side of them, across each edge of the square,
+// wholly outside it and NaN.
+TEST(SmallMarkers, CoverageCountsAreTheSampleCellsCounted) {
+  cv::RNG rng(26);
+  int counted = 0, left = 0, aligned_left = 0, outside = 0, several = 0, plain = 0, plain_left = 0;
+  for (int trial = 0; trial < 60000; ++trial) {
+    const int n = 3 + trial % 12;
+    const double scale = rng.uniform(0.2, 1.0);  // cells per pixel: 1-5 px a cell
+    const double angle = rng.uniform(0.0, 2.0 * CV_PI);
+    cv::Point2d p00(rng.uniform(-1.5, n + 0.5), rng.uniform(-1.5, n + 0.5));
+    cv::Point2d dx(scale * std::cos(angle), scale * std::sin(angle));
+    cv::Point2d dy(-dx.y * rng.uniform(0.8, 1.2), dx.x * rng.uniform(0.8, 1.2));
+    cv::Point2d dxy(rng.uniform(-0.02, 0.02) * scale, rng.uniform(-0.02, 0.02) * scale);
+    bool aligned = false;
+    switch (trial % 8) {
+      case 0:  // the grid of a marker square to the pixels: corners on cell lines
+        aligned = true;
+        p00 = cv::Point2d(std::floor(p00.x) + 0.5 * (trial % 3), std::floor(p00.y));
+        dx = cv::Point2d(0.5, 0.0), dy = cv::Point2d(0.0, 0.5), dxy = cv::Point2d(0.0, 0.0);
+        break;
+      case 1:  // a corner an ulp either side of a cell line
+        p00.x = std::nextafter(std::round(p00.x), trial % 16 < 8 ? -1e9 : 1e9);
+        break;
+      case 2:  // far outside, or not a number
+        p00.y = trial % 16 == 2 ? std::numeric_limits<double>::quiet_NaN() : n + 2.0 + rng.uniform(0.0, 1e6);
+        break;
+      default:
+        ++plain;
+        break;
+    }
+    int sample_cells[internal::kCoverageSamples * internal::kCoverageSamples];
+    internal::CoverageSampleCells(p00, dx, dy, dxy, n, sample_cells);
+    std::map<int, int> expected;
+    for (const int cell : sample_cells) ++expected[cell];
+    int cells[internal::kCoverageSamples * internal::kCoverageSamples];
+    int counts[internal::kCoverageSamples * internal::kCoverageSamples];
+    const int found = internal::CoverageCounts(p00, dx, dy, dxy, n, cells, counts);
+    if (found < 0) {
+      ++left;
+      aligned_left += aligned;
+      plain_left += trial % 8 > 2;
+      continue;
+    }
+    ++counted;
+    std::map<int, int> got;
+    for (int i = 0; i < found; ++i) {
+      ASSERT_GT(counts[i], 0) << "trial " << trial;
+      if (i > 0) {
+        ASSERT_LT(cells[i - 1], cells[i]) << "trial " << trial;  // ascending, each once
+      }
+      got[cells[i]] = counts[i];
+    }
+    ASSERT_EQ(got, expected) << "trial " << trial;
+    outside += expected.count(n * n) > 0;
+    several += found > 1;
+  }
+  std::printf("%d pixels counted (%d with the outside, %d over several cells), %d left to the samples (%d of %d "
+              "placed at random)\n", counted, outside, several, left, plain_left, plain);
+  // Pixels placed at random are left only where they reach over more than three columns or rows (at
+  // 1-1.25 px a cell, turned and sheared).
+  EXPECT_LT(plain_left, plain / 50);
+  EXPECT_GT(outside, counted / 10);
+  EXPECT_GT(several, counted / 2);
+  EXPECT_GT(aligned_left, 0);  // corners on the lines inside the square: left, within 1e-9 of them
 }
 
 // Every marker plain cv::aruco::detectMarkers finds, the fast path finds too: at these sizes the
