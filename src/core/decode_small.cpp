@@ -670,21 +670,31 @@ std::vector<SmallMarker> DecodeRejected(const cv::Mat& grey, const std::vector<s
   return markers;
 }
 
+// The cell coordinates of row j of a pixel's samples (CoverageSampleCells), one rounding per product
+// and sum: CoverageSampleCells and CoverageCounts place every sample alike.
+ARUCOTAG_INLINE ARUCOTAG_NO_FUSED_MULTIPLY_ADD void SampleRow(const cv::Point2d& p00, const cv::Point2d& dx,
+                                                              const cv::Point2d& dy, const cv::Point2d& dxy, int j,
+                                                              Double4& x, Double4& y) {
+  const Double4 along = {0.125, 0.375, 0.625, 0.875};  // (i + 0.5) / 4, exact
+  const double fy = (j + 0.5) / kCoverageSamples;
+  const double down_x = dy.x * fy, down_y = dy.y * fy, bend_x = dxy.x * fy, bend_y = dxy.y * fy;
+  const double row_x = p00.x + down_x, row_y = p00.y + down_y;
+  const double step_x = dx.x + bend_x, step_y = dx.y + bend_y;
+  const Double4 offset_x = step_x * along, offset_y = step_y * along;
+  x = row_x + offset_x;
+  y = row_y + offset_y;
+}
+
 ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD void CoverageSampleCells(const cv::Point2d& p00,
                                                                               const cv::Point2d& dx,
                                                                               const cv::Point2d& dy,
                                                                               const cv::Point2d& dxy, int n,
                                                                               int* cells) {
   static_assert(kCoverageSamples == 4, "a row of samples is one vector");
-  const Double4 along = {0.125, 0.375, 0.625, 0.875};  // (i + 0.5) / 4, exact
   const double side = n;
   for (int j = 0; j < kCoverageSamples; ++j) {
-    const double fy = (j + 0.5) / kCoverageSamples;
-    const double down_x = dy.x * fy, down_y = dy.y * fy, bend_x = dxy.x * fy, bend_y = dxy.y * fy;
-    const double row_x = p00.x + down_x, row_y = p00.y + down_y;
-    const double step_x = dx.x + bend_x, step_y = dx.y + bend_y;
-    const Double4 offset_x = step_x * along, offset_y = step_y * along;
-    const Double4 x = row_x + offset_x, y = row_y + offset_y;
+    Double4 x, y;
+    SampleRow(p00, dx, dy, dxy, j, x, y);
     // floor(x) in [0, n) exactly when x is, and there floor is truncation; NaN is outside.
     const auto inside = (x >= 0.0) & (x < side) & (y >= 0.0) & (y < side);
     const Double4 cx = __builtin_convertvector(__builtin_convertvector(inside ? x : 0.0, Int4), Double4);
@@ -716,18 +726,12 @@ ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD int CoverageCounts(const c
   // cells from (cx0, cy0), or kOutside outside the square. Ten counts fill 60 bits.
   typedef int64_t Long4 __attribute__((vector_size(4 * sizeof(int64_t))));
   constexpr int kSlotBits = 6, kOutside = 9;
-  const Double4 along = {0.125, 0.375, 0.625, 0.875};  // (i + 0.5) / 4, exact
   const double side = n, x1 = cx0 + 1, x2 = cx0 + 2, y1 = cy0 + 1, y2 = cy0 + 2;
   const Long4 one = {1, 1, 1, 1}, outside = one * (kOutside * kSlotBits);
   Long4 sums = {0, 0, 0, 0};
   for (int j = 0; j < kCoverageSamples; ++j) {
-    // The samples' cell coordinates in CoverageSampleCells's arithmetic, operation for operation.
-    const double fy = (j + 0.5) / kCoverageSamples;
-    const double down_x = dy.x * fy, down_y = dy.y * fy, bend_x = dxy.x * fy, bend_y = dxy.y * fy;
-    const double row_x = p00.x + down_x, row_y = p00.y + down_y;
-    const double step_x = dx.x + bend_x, step_y = dx.y + bend_y;
-    const Double4 offset_x = step_x * along, offset_y = step_y * along;
-    const Double4 x = row_x + offset_x, y = row_y + offset_y;
+    Double4 x, y;
+    SampleRow(p00, dx, dy, dxy, j, x, y);
     const Long4 inside = (x >= 0.0) & (x < side) & (y >= 0.0) & (y < side);
     // Comparisons give -1 where true: minus the lines passed, times the slot's bits.
     const Long4 column = (x >= x1) + (x >= x2), row = (y >= y1) + (y >= y2);
