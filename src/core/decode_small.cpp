@@ -717,7 +717,7 @@ ARUCOTAG_VECTOR_CLONES ARUCOTAG_NO_FUSED_MULTIPLY_ADD int CoverageCounts(const c
   const cv::Point2d p10 = p00 + dx, p01 = p00 + dy, p11 = p01 + dx + dxy;
   const double lo_x = std::min({p00.x, p10.x, p01.x, p11.x}), hi_x = std::max({p00.x, p10.x, p01.x, p11.x});
   const double lo_y = std::min({p00.y, p10.y, p01.y, p11.y}), hi_y = std::max({p00.y, p10.y, p01.y, p11.y});
-  // In [0, n] (std::max keeps 0 for a NaN, which the tests below then refuse).
+  // In [0, n - 1] (std::max keeps 0 for a NaN, which the tests below then refuse).
   const int cx0 = FloorInt(std::min(std::max(0.0, lo_x), n - 1.0)), cy0 = FloorInt(std::min(std::max(0.0, lo_y), n - 1.0));
   const bool fits_x = hi_x <= cx0 + 3 - kMargin && (lo_x < 0.0 || lo_x >= cx0 + kMargin);
   const bool fits_y = hi_y <= cy0 + 3 - kMargin && (lo_y < 0.0 || lo_y >= cy0 + kMargin);
