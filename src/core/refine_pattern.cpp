@@ -373,7 +373,7 @@ class PatternFit {
     }
     // Plane column (row) of image x (y): floor(x + 0.5 - roi_.x) (see AddEdges). The vertices lie
     // within `reach` of the plane (valid_): no int overflow.
-    const auto plane = [](double v, int origin) { return static_cast<int>(std::floor(v + 0.5 - origin)); };
+    const auto plane = [](double v, int origin) { return internal::FloorInt(v + 0.5 - origin); };
     boundary_box_ = {width, height, -1, -1};  // empty
     if (low_x <= high_x) {
       boundary_box_ = {std::max(0, plane(low_x, roi_.x) - 1), std::max(0, plane(low_y, roi_.y) - 1),
