@@ -123,7 +123,7 @@ double RisingCrossing(int i, int half, double step, double level, double before,
 // middle, on a whole profile of 2 half + 1 samples `step` px apart; infinity without one. The
 // intervals are searched from the middle outwards and only as far as the nearest crossing. The same
 // crossing, tie included, as a scan of the whole profile that keeps the first of the nearest.
-double NearestCrossing(const double* profile, double level, int half, double step) {
+double NearestCrossing(const int32_t* profile, double level, int half, double step) {
   // Interval i runs from sample i - 1 to sample i; a crossing in it lies (i - 1 - half .. i - half)
   // steps from the middle.
   const auto crossing = [&](int i, double before, double after) {
@@ -147,44 +147,6 @@ double NearestCrossing(const double* profile, double level, int half, double ste
     return r;
   }
   return std::numeric_limits<double>::infinity();
-}
-
-// The offset (px, outwards from the middle) of the edge on a whole profile of 2 half + 1 samples
-// `step` px apart, whose darkest sample on the dark half is sample `darkest` and whose lightest on the
-// light half is sample `lightest`. Where exactly one rising crossing of `level` lies on it: by the area
-// under the profile between those two samples, normalised to [0, 1] by their values (exact for a
-// box-filtered step that is flat there, whatever lies beyond: a narrow light surround that darkens
-// again towards the profile's end, the inner bits that lighten its dark end). Else the crossing
-// nearest the middle; infinity without a crossing.
-double AreaOffset(const double* profile, int half, double step, double level, int darkest, int lightest) {
-  const int samples = 2 * half + 1;
-  // The crossings counted without branches (where they fall is noise: a branch on each mispredicted),
-  // from the sides of `level` the samples lie on: every change of side is a crossing, and the rising
-  // ones outnumber the falling ones by the change from the first sample's side to the last's.
-  int crossings = 0;
-  int above = profile[0] >= level;
-  const int first_above = above;
-  for (int i = 1; i < samples; ++i) {
-    const int next = profile[i] >= level;
-    crossings += above ^ next;
-    above = next;
-  }
-  const int rising = (crossings + above - first_above) / 2;
-  if (rising == 0) return std::numeric_limits<double>::infinity();
-  if (crossings == 1) {
-    // Trapezoid rule over the profile normalised to [0, 1].
-    const double dark = profile[darkest], light = profile[lightest];
-    double area = 0.0;
-    for (int i = darkest + 1; i <= lightest; ++i) area += profile[i - 1] + profile[i];
-    area = 0.5 * step * (area - 2.0 * dark * (lightest - darkest)) / (light - dark);
-    return (lightest - half) * step - area;
-  }
-  double crossing = std::numeric_limits<double>::infinity();
-  for (int i = 1; i < samples; ++i) {
-    const double at = RisingCrossing(i, half, step, level, profile[i - 1], profile[i]);
-    if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
-  }
-  return crossing;
 }
 
 // The k-th smallest of values[0..count) (k = 0: the smallest), with sign -1 the k-th largest: what
@@ -251,7 +213,9 @@ typedef uint16_t PixelPairs __attribute__((vector_size(8 * sizeof(uint16_t))));
 constexpr bool kLittleEndian = __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__;
 constexpr int kLanes = 8;
 constexpr int kProfileChunks = (kMaxProfileSamples + kLanes - 1) / kLanes;
-constexpr int kPaddedSamples = kProfileChunks * kLanes;
+// A profile's buffer: whole vectors of samples, and one more sample (SideChanges reads pairs of
+// samples eight at a time, the next sample of the last pair one past the last whole vector).
+constexpr int kPaddedSamples = kProfileChunks * kLanes + 1;
 constexpr int kMaxFixedImageSide = 1 << 20;
 static_assert(static_cast<double>(kMaxFixedImageSide) * kFixedOne <= 2147483648.0, "positions fit an int32_t");
 
@@ -262,13 +226,56 @@ struct ProfileLanes {
   std::array<SampleLanes, kProfileChunks> across_x, across_y;
 };
 
+// `v`'s lanes in the order of the indices that follow it.
+#if defined(__clang__)
+#define ARUCOTAG_SHUFFLED(v, ...) __builtin_shufflevector(v, v, __VA_ARGS__)
+#else
+#define ARUCOTAG_SHUFFLED(v, ...) __builtin_shuffle(v, SampleLanes{__VA_ARGS__})
+#endif
+
+// The smallest (kMin) or largest (kMax) lane of `v`, or their sum (kSum), halving the lanes each step.
+enum class Reduce { kMin, kMax, kSum };
+template <Reduce kWhich>
+ARUCOTAG_INLINE void Combine(SampleLanes& v, const SampleLanes& other) {
+  if constexpr (kWhich == Reduce::kMin) {
+    v = v < other ? v : other;
+  } else if constexpr (kWhich == Reduce::kMax) {
+    v = v > other ? v : other;
+  } else {
+    v += other;
+  }
+}
+template <Reduce kWhich>
+ARUCOTAG_INLINE int32_t Across(SampleLanes v) {
+  Combine<kWhich>(v, ARUCOTAG_SHUFFLED(v, 4, 5, 6, 7, 0, 1, 2, 3));
+  Combine<kWhich>(v, ARUCOTAG_SHUFFLED(v, 2, 3, 0, 1, 6, 7, 4, 5));
+  Combine<kWhich>(v, ARUCOTAG_SHUFFLED(v, 1, 0, 3, 2, 5, 4, 7, 6));
+  return v[0];
+}
+#undef ARUCOTAG_SHUFFLED
+
+// Where a profile's flat dark and light are: the first of its darkest samples on the dark half
+// (samples 0 to half) and the last of its lightest on the light half (half to the end). The outermost
+// of equal extremes: the area between them then spans the most of the flat.
+struct Extremes {
+  int darkest, lightest;  // the samples
+  int32_t dark, light;    // their values
+};
+
 // The profile of 2 half + 1 samples at base + across (fixed point, every one in the image with its
 // right and lower neighbours), in kFixedGrey units: the same integer arithmetic as a sample at a
-// time, so the same values to the bit.
-ARUCOTAG_VECTOR_CLONES void ReadProfile(const uchar* pixels, int32_t row_step, int32_t base_x, int32_t base_y,
-                                        const ProfileLanes& lanes, int half, double* profile) {
-  const int chunks = (2 * half + 1 + kLanes - 1) / kLanes;
+// time, so the same values to the bit. Its Extremes are found on the lanes as they are read: scanning
+// the stored samples one at a time was a third of FitEdge's own instructions.
+ARUCOTAG_VECTOR_CLONES Extremes ReadProfile(const uchar* pixels, int32_t row_step, int32_t base_x, int32_t base_y,
+                                            const ProfileLanes& lanes, int half, int32_t* profile) {
+  const int samples = 2 * half + 1;
+  const int chunks = (samples + kLanes - 1) / kLanes;
   const uchar* const next_row = pixels + row_step;
+  constexpr int32_t kAbove = std::numeric_limits<int32_t>::max(), kBelow = std::numeric_limits<int32_t>::min();
+  const SampleLanes first_lanes = {0, 1, 2, 3, 4, 5, 6, 7};
+  std::array<SampleLanes, kProfileChunks> values;
+  const SampleLanes above = SampleLanes{} + kAbove, below = SampleLanes{} + kBelow;
+  SampleLanes darkest = above, lightest = below;
   for (int c = 0; c < chunks; ++c) {
     const SampleLanes x = base_x + lanes.across_x[c], y = base_y + lanes.across_y[c];
     const SampleLanes at = (y >> kFixedBits) * row_step + (x >> kFixedBits);
@@ -291,8 +298,75 @@ ARUCOTAG_VECTOR_CLONES void ReadProfile(const uchar* pixels, int32_t row_step, i
     const SampleLanes top = (top_left << kFixedBits) + (top_right - top_left) * fx;
     const SampleLanes bottom = (bottom_left << kFixedBits) + (bottom_right - bottom_left) * fx;
     const SampleLanes value = (top << kFixedBits) + (bottom - top) * fy;
-    for (int l = 0; l < kLanes; ++l) profile[c * kLanes + l] = static_cast<double>(value[l]);
+    std::memcpy(profile + c * kLanes, &value, sizeof value);
+    values[c] = value;
+    const SampleLanes index = first_lanes + c * kLanes;
+    const SampleLanes dark_half = index <= half ? value : above;
+    const SampleLanes light_half = ((index >= half) & (index < samples)) ? value : below;
+    darkest = darkest < dark_half ? darkest : dark_half;
+    lightest = lightest > light_half ? lightest : light_half;
   }
+  const int32_t dark = Across<Reduce::kMin>(darkest), light = Across<Reduce::kMax>(lightest);
+  // The first lane at the darkest value on the dark half, the last at the lightest on the light half.
+  SampleLanes first = SampleLanes{} + samples, last = SampleLanes{} - 1;
+  for (int c = 0; c < chunks; ++c) {
+    const SampleLanes index = first_lanes + c * kLanes;
+    const SampleLanes at_dark = (values[c] == dark) & (index <= half);
+    const SampleLanes at_light = (values[c] == light) & (index >= half) & (index < samples);
+    first = at_dark ? (first < index ? first : index) : first;
+    last = at_light ? (last > index ? last : index) : last;
+  }
+  profile[chunks * kLanes] = 0;  // read by SideChanges, never counted
+  return {Across<Reduce::kMin>(first), Across<Reduce::kMax>(last), dark, light};
+}
+
+// How many times a profile's `samples` samples (as ReadProfile wrote them) change sides of
+// `threshold` from one to the next, a sample at or above it on the upper side: eight pairs a step.
+ARUCOTAG_VECTOR_CLONES int SideChanges(const int32_t* profile, int samples, int32_t threshold) {
+  const SampleLanes first_pairs = {0, 1, 2, 3, 4, 5, 6, 7};
+  SampleLanes changes = {};
+  for (int c = 0; c * kLanes < samples - 1; ++c) {
+    SampleLanes here, next;
+    std::memcpy(&here, profile + c * kLanes, sizeof here);
+    std::memcpy(&next, profile + c * kLanes + 1, sizeof next);
+    changes += ((here >= threshold) ^ (next >= threshold)) & (first_pairs + c * kLanes < samples - 1);
+  }
+  return -Across<Reduce::kSum>(changes);  // each change a lane of -1
+}
+
+// The offset (px, outwards from the middle) of the edge on a whole profile of 2 half + 1 samples
+// `step` px apart, whose darkest sample on the dark half is sample `darkest` and whose lightest on the
+// light half is sample `lightest`. Where exactly one rising crossing of `level` lies on it: by the area
+// under the profile between those two samples, normalised to [0, 1] by their values (exact for a
+// box-filtered step that is flat there, whatever lies beyond: a narrow light surround that darkens
+// again towards the profile's end, the inner bits that lighten its dark end). Else the crossing
+// nearest the middle; infinity without a crossing.
+double AreaOffset(const int32_t* profile, int half, double step, double level, int darkest, int lightest) {
+  const int samples = 2 * half + 1;
+  // The crossings counted without branches (where they fall is noise: a branch on each mispredicted),
+  // from the sides of `level` the samples lie on: every change of side is a crossing, and the rising
+  // ones outnumber the falling ones by the change from the first sample's side to the last's. The
+  // samples are integers: at or above `level` is at or above its ceiling.
+  const int32_t threshold = static_cast<int32_t>(std::ceil(level));
+  const int crossings = SideChanges(profile, samples, threshold);
+  const int rising = (crossings + (profile[samples - 1] >= threshold) - (profile[0] >= threshold)) / 2;
+  if (rising == 0) return std::numeric_limits<double>::infinity();
+  if (crossings == 1) {
+    // Trapezoid rule over the profile normalised to [0, 1].
+    // The sum in integers: the same value as in doubles (every partial sum is under 2^53).
+    const double dark = profile[darkest], light = profile[lightest];
+    int64_t twice_area = 0;
+    for (int i = darkest + 1; i <= lightest; ++i) twice_area += static_cast<int64_t>(profile[i - 1]) + profile[i];
+    const double area =
+        0.5 * step * (static_cast<double>(twice_area) - 2.0 * dark * (lightest - darkest)) / (light - dark);
+    return (lightest - half) * step - area;
+  }
+  double crossing = std::numeric_limits<double>::infinity();
+  for (int i = 1; i < samples; ++i) {
+    const double at = RisingCrossing(i, half, step, level, profile[i - 1], profile[i]);
+    if (std::abs(at) < std::abs(crossing)) crossing = at;  // nearest the expected edge
+  }
+  return crossing;
 }
 
 // Sub-pixel points of the edge from `from` towards `to`, on the stretch from `start` to `stop` px
@@ -347,7 +421,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
   // out: a level from the ends put every edge inwards, the corners 0.05 px towards the marker's
   // centre (edge fit from the true corners: median error 0.078 px there, 0.037 px from the flat
   // levels).
-  std::array<std::array<double, kPaddedSamples>, kProfilesPerEdge> profiles;
+  std::array<std::array<int32_t, kPaddedSamples>, kProfilesPerEdge> profiles;
   std::array<cv::Point2d, kProfilesPerEdge> bases;
   std::array<double, kProfilesPerEdge> darks, lights;
   std::array<int, kProfilesPerEdge> darkest, lightest;
@@ -364,35 +438,15 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
         (std::max(a_y, b_y) >> kFixedBits) > last_y) {
       continue;
     }
-    double* const profile = profiles[read].data();
-    ReadProfile(pixels, static_cast<int32_t>(row_step), static_cast<int32_t>(base_x), static_cast<int32_t>(base_y),
-                lanes, half, profile);
-    // The outermost of equal extremes: the area between them then spans the most of the flat (the
-    // first of equal minima from the dark end, the last of equal maxima towards the light end).
-    int low = 0, high = half;
-    double darkest_value = profile[0];
-    for (int i = 1; i <= half; ++i) {
-      if (profile[i] < darkest_value) {
-        darkest_value = profile[i];
-        low = i;
-      }
-    }
-    // Without a branch: which sample is the lightest is as good as random along the light half (noise
-    // on a flat), and a branch on it mispredicted once or twice a profile (callgrind's branch
-    // simulation, 640x480/50: 40 k of FitEdge's 96 k mispredictions). The maximum is taken as is (equal
-    // values are the same value) and the index moved by a mask where the sample is at least as light.
-    double lightest_value = profile[half];
-    for (int i = half + 1; i < samples; ++i) {
-      const int lighter = -static_cast<int>(profile[i] >= lightest_value);
-      high += (i - high) & lighter;
-      lightest_value = std::max(lightest_value, profile[i]);
-    }
-    if (profile[high] - profile[low] < 10.0 * kFixedGrey) continue;  // too little contrast to place an edge
+    int32_t* const profile = profiles[read].data();
+    const Extremes flat = ReadProfile(pixels, static_cast<int32_t>(row_step), static_cast<int32_t>(base_x),
+                                      static_cast<int32_t>(base_y), lanes, half, profile);
+    if (flat.light - flat.dark < 10.0 * kFixedGrey) continue;  // too little contrast to place an edge
     bases[read] = base;
-    darks[read] = profile[low];
-    lights[read] = profile[high];
-    darkest[read] = low;
-    lightest[read] = high;
+    darks[read] = flat.dark;
+    lights[read] = flat.light;
+    darkest[read] = flat.darkest;
+    lightest[read] = flat.lightest;
     ++read;
   }
   if (read < 3) return false;
@@ -412,7 +466,7 @@ bool FitEdge(const cv::Mat& grey, const cv::Point2d& from, const cv::Point2d& to
     // the crossing of the edge's level is the better estimate. Exactly one crossing: a second means
     // the profile ran into something else (inner bits, clutter), and then the crossing nearest the
     // expected edge is used as well.
-    const double* const profile = profiles[k].data();
+    const int32_t* const profile = profiles[k].data();
     const double offset =
         use_area ? AreaOffset(profile, half, step, level, darkest[k], lightest[k])
                  : NearestCrossing(profile, level, half, step);
