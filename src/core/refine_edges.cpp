@@ -226,6 +226,9 @@ struct ProfileLanes {
   std::array<SampleLanes, kProfileChunks> across_x, across_y;
 };
 
+// Each lane's index.
+constexpr SampleLanes kLaneIndex = {0, 1, 2, 3, 4, 5, 6, 7};
+
 // `v`'s lanes in the order of the indices that follow it.
 #if defined(__clang__)
 #define ARUCOTAG_SHUFFLED(v, ...) __builtin_shufflevector(v, v, __VA_ARGS__)
@@ -272,8 +275,7 @@ ARUCOTAG_VECTOR_CLONES Extremes ReadProfile(const uchar* pixels, int32_t row_ste
   const int chunks = (samples + kLanes - 1) / kLanes;
   const uchar* const next_row = pixels + row_step;
   constexpr int32_t kAbove = std::numeric_limits<int32_t>::max(), kBelow = std::numeric_limits<int32_t>::min();
-  const SampleLanes first_lanes = {0, 1, 2, 3, 4, 5, 6, 7};
-  std::array<SampleLanes, kProfileChunks> values;
+  std::array<SampleLanes, kProfileChunks> values;  // the profile as read, kept for the second pass
   const SampleLanes above = SampleLanes{} + kAbove, below = SampleLanes{} + kBelow;
   SampleLanes darkest = above, lightest = below;
   for (int c = 0; c < chunks; ++c) {
@@ -300,7 +302,7 @@ ARUCOTAG_VECTOR_CLONES Extremes ReadProfile(const uchar* pixels, int32_t row_ste
     const SampleLanes value = (top << kFixedBits) + (bottom - top) * fy;
     std::memcpy(profile + c * kLanes, &value, sizeof value);
     values[c] = value;
-    const SampleLanes index = first_lanes + c * kLanes;
+    const SampleLanes index = kLaneIndex + c * kLanes;
     const SampleLanes dark_half = index <= half ? value : above;
     const SampleLanes light_half = ((index >= half) & (index < samples)) ? value : below;
     darkest = darkest < dark_half ? darkest : dark_half;
@@ -310,7 +312,7 @@ ARUCOTAG_VECTOR_CLONES Extremes ReadProfile(const uchar* pixels, int32_t row_ste
   // The first lane at the darkest value on the dark half, the last at the lightest on the light half.
   SampleLanes first = SampleLanes{} + samples, last = SampleLanes{} - 1;
   for (int c = 0; c < chunks; ++c) {
-    const SampleLanes index = first_lanes + c * kLanes;
+    const SampleLanes index = kLaneIndex + c * kLanes;
     const SampleLanes at_dark = (values[c] == dark) & (index <= half);
     const SampleLanes at_light = (values[c] == light) & (index >= half) & (index < samples);
     first = at_dark ? (first < index ? first : index) : first;
@@ -323,13 +325,12 @@ ARUCOTAG_VECTOR_CLONES Extremes ReadProfile(const uchar* pixels, int32_t row_ste
 // How many times a profile's `samples` samples (as ReadProfile wrote them) change sides of
 // `threshold` from one to the next, a sample at or above it on the upper side: eight pairs a step.
 ARUCOTAG_VECTOR_CLONES int SideChanges(const int32_t* profile, int samples, int32_t threshold) {
-  const SampleLanes first_pairs = {0, 1, 2, 3, 4, 5, 6, 7};
   SampleLanes changes = {};
   for (int c = 0; c * kLanes < samples - 1; ++c) {
     SampleLanes here, next;
     std::memcpy(&here, profile + c * kLanes, sizeof here);
     std::memcpy(&next, profile + c * kLanes + 1, sizeof next);
-    changes += ((here >= threshold) ^ (next >= threshold)) & (first_pairs + c * kLanes < samples - 1);
+    changes += ((here >= threshold) ^ (next >= threshold)) & (kLaneIndex + c * kLanes < samples - 1);
   }
   return -Across<Reduce::kSum>(changes);  // each change a lane of -1
 }
